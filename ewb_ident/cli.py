@@ -1,0 +1,163 @@
+"""The ``ewb-ident`` command line: parse, validate, call the library, write files.
+
+Every command reads traces, does its work in memory, and writes its files only at the
+end, atomically. Bad input (a trace, a mapping, an option) prints one line naming the
+file, column, row and what to do, and exits with code 2; nothing is written.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help=(
+        "Fit the EWB rig model (DC motor -> worm pinion -> wedge -> caliper) to rig traces, "
+        "say how certain the parameters are, and find the physics the model leaves out.\n\n"
+        "Traces are CSV/Parquet/MATLAB tables in the trace format v1 (time_s, voltage_V, "
+        "theta_deg, x_m, force_N, torque_Nm, current_A) with an optional JSON sidecar."
+    ),
+    pretty_exceptions_enable=False,
+)
+
+EXIT_BAD_INPUT = 2
+
+Traces = Annotated[list[Path], typer.Argument(help="Trace files (.csv, .parquet, .mat).")]
+OutDir = Annotated[Path, typer.Option("--out", "-o", help="Output folder (created if absent).")]
+Mapping = Annotated[
+    Path | None,
+    typer.Option("--map", help="Column mapping (JSON/TOML): source name -> column and unit."),
+]
+FillGaps = Annotated[
+    bool, typer.Option("--fill-gaps", help="Interpolate interior gaps of up to 5 samples.")
+]
+NoUnitCheck = Annotated[
+    bool, typer.Option("--no-unit-check", help="Skip the plausibility checks of units.")
+]
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _names(text: str | None) -> list[str] | None:
+    if text is None:
+        return None
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
+def _assignments(text: str | None, option: str) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in _names(text) or []:
+        name, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[name.strip()] = float(value)
+        except ValueError:
+            _fail(f"{option} takes NAME=VALUE pairs separated by commas, got {item!r}")
+    return out
+
+
+def _read(paths: list[Path], stages, mapping, fill_gaps, no_unit_check):
+    from .traces import read_trace
+
+    return [
+        read_trace(
+            p,
+            mapping=mapping,
+            stages=stages,
+            nan_policy="interpolate" if fill_gaps else "raise",
+            check_units=not no_unit_check,
+        )
+        for p in paths
+    ]
+
+
+def _bad_input_errors() -> tuple[type[Exception], ...]:
+    from .fit import FitError
+    from .traces import TraceError
+
+    return (TraceError, FitError)
+
+
+@app.command()
+def fit(
+    traces: Traces,
+    out: OutDir,
+    stage: Annotated[
+        str, typer.Option(help="chain (from voltage alone), or motor, gap, force, torque.")
+    ] = "chain",
+    free: Annotated[
+        str | None, typer.Option(help="Parameters to vary, e.g. 'a,b,c,mu' (default: per stage).")
+    ] = None,
+    per_trace: Annotated[
+        str | None,
+        typer.Option(help="Free parameters fitted per trace, e.g. 'c,p0' after a pad change."),
+    ] = None,
+    fix: Annotated[
+        str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
+    ] = None,
+    integrator: Annotated[
+        str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
+    ] = "exponential",
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Least-squares fit; writes OUT/fit.json and prints a summary."""
+    from .fit import fit as run_fit
+    from .outputs import write_json
+    from .report import fit_summary
+    from .simulate import EXPONENTIAL, SEED_HEUN
+
+    if integrator not in ("exponential", "heun"):
+        _fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    try:
+        trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check)
+        result = run_fit(
+            trs,
+            stage=stage,
+            free=_names(free),
+            per_trace=_names(per_trace),
+            fixed=_assignments(fix, "--fix"),
+            integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+        )
+    except _bad_input_errors() as err:
+        _fail(str(err))
+    document = result.to_json() | {"traces": [str(p) for p in traces]}
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "fit.json", document)
+    typer.echo(fit_summary(result))
+    typer.echo(f"wrote {out / 'fit.json'}")
+
+
+@app.callback(invoke_without_command=True)
+def _main(
+    version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
+) -> None:
+    if version:
+        from importlib.metadata import version as _v
+
+        typer.echo(f"ewb-ident {_v('ewb-ident')}")
+        raise typer.Exit(0)
+
+
+def main() -> None:
+    """Entry point of the ``ewb-ident`` script: float64 on, then the command."""
+    import os
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    # Compiled XLA code is cached on disk, so a second run of a command skips compilation.
+    cache = os.environ.get("EWB_IDENT_CACHE", str(Path.home() / ".cache" / "ewb-ident" / "jax"))
+    if cache:
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    app()

@@ -1,0 +1,710 @@
+"""Least-squares fits of the chain, stage-wise or whole, to one or several traces.
+
+What is fitted
+--------------
+``stage="motor"``  voltage -> theta (and current, when recorded)
+``stage="gap"``    measured theta -> x          (teacher-forced)
+``stage="force"``  measured x -> force          (teacher-forced)
+``stage="torque"`` measured force -> torque     (teacher-forced)
+``stage="chain"``  voltage -> every recorded channel at once
+
+Weights. Each channel's residuals are divided by that channel's noise level, which is
+estimated, not hand-set: first from the data (second differences, see
+:func:`ewb_ident.metrics.noise_sigma`), then, after a first solve, from the residuals
+themselves (the maximum-likelihood estimate for Gaussian noise), and the fit is solved
+again from there.
+
+Parameters are optimised in unconstrained O(1) coordinates (:mod:`ewb_ident.params`);
+standard errors come from the Jacobian at the optimum (delta method back to SI units).
+The solver is optimistix's Levenberg-Marquardt; its result code is always checked.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .metrics import SEED_PERCENT_ERROR, channel_metrics, noise_sigma
+from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
+from .physics import brake_torque, clamp_force, gap
+from .simulate import EXPONENTIAL, Integrator, _motor_states, heun_amplification
+from .traces import CHANNELS, STAGE_COLUMNS, Trace, TraceError
+
+Stage = Literal["motor", "gap", "force", "torque", "chain"]
+STAGES: tuple[str, ...] = ("motor", "gap", "force", "torque", "chain")
+
+#: Parameters fitted per trace unless the user says otherwise: the start angle is a
+#: property of each recording, not of the rig.
+DEFAULT_PER_TRACE: tuple[str, ...] = ("theta0_deg",)
+
+#: Above this condition number of the column-scaled Jacobian the fit warns that some
+#: parameters are not separately identified by the data.
+ILL_CONDITIONED = 1.0e6
+#: Above this |correlation| a pair of parameters is named as trading off.
+STRONG_CORRELATION = 0.95
+
+
+class FitError(ValueError):
+    """A fit that cannot be set up as asked (unknown stage or parameter, no data)."""
+
+
+def stage_channels(stage: str, trace: Trace) -> tuple[str, ...]:
+    """The measured channels a stage's prediction is compared with, for one trace."""
+    if stage == "motor":
+        return ("theta_deg",) + (("current_A",) if trace.has("current_A") else ())
+    if stage == "chain":
+        return tuple(ch for ch in CHANNELS if trace.has(ch))
+    return (STAGE_COLUMNS[stage][1],)
+
+
+def stage_inputs(stage: str) -> tuple[str, ...]:
+    """The columns a stage needs as input."""
+    return ("voltage_V",) if stage in ("motor", "chain") else (STAGE_COLUMNS[stage][0],)
+
+
+def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
+    """The parameters a fit varies when the user does not say.
+
+    Motor: ``kb``, ``M``, ``v`` and the start angle; ``R`` too when current is recorded.
+    ``kT`` and ``L`` stay fixed: with no load-torque measurement only ratios to ``kT``
+    are identified, and an armature pole of 1-5 ms is not resolved at 100-200 Hz.
+    Gap: ``p2, p1, p0``. Force: ``a, b, c`` (``F_rt`` fixed at the seed's rated force).
+    Torque: ``mu``. Chain: each stage's defaults for the stages whose output is recorded
+    (the gap polynomial only when ``x_m`` is, since otherwise it trades off with ``c``).
+    """
+    if stage == "motor":
+        with_current = all(t.has("current_A") for t in traces)
+        return ("R",) * with_current + ("kb", "M", "v", "theta0_deg")
+    if stage == "gap":
+        return ("p2", "p1", "p0")
+    if stage == "force":
+        return ("a", "b", "c")
+    if stage == "torque":
+        return ("mu",)
+    free = list(default_free("motor", traces))
+    for s in ("gap", "force", "torque"):
+        if any(t.has(STAGE_COLUMNS[s][1]) for t in traces):
+            free += default_free(s, traces)
+    return tuple(free)
+
+
+# ----------------------------------------------------------------------------- problem
+
+
+class _Problem(eqx.Module):
+    """Weighted residuals of one fit as a function of the unconstrained vector ``u``.
+
+    All configuration is static (hashable), so solving the same problem on new data of
+    the same shapes reuses the compiled code.
+    """
+
+    stage: str = eqx.field(static=True)
+    shared: tuple[str, ...] = eqx.field(static=True)
+    per_trace: tuple[str, ...] = eqx.field(static=True)
+    channels: tuple[tuple[str, ...], ...] = eqx.field(static=True)
+    n_sub: tuple[int, ...] = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+
+    def values(self, u: jnp.ndarray, base: dict, k: int) -> dict[str, jnp.ndarray]:
+        """Parameter values (SI) for trace ``k``: fixed ones from ``base``, free from u."""
+        out = dict(base)
+        for j, name in enumerate(self.shared):
+            out[name] = PARAMS[name].to_physical(u[j])
+        offset = len(self.shared) + k * len(self.per_trace)
+        for j, name in enumerate(self.per_trace):
+            out[name] = PARAMS[name].to_physical(u[offset + j])
+        return out
+
+    def predict(self, u: jnp.ndarray, data: dict) -> list[dict[str, jnp.ndarray]]:
+        """The model's prediction of each fitted channel, per trace."""
+        preds = []
+        for k, tr in enumerate(data["traces"]):
+            base = dict(data["fixed"]) | {"theta0_deg": tr["theta0_deg"]}
+            vals = self.values(u, base, k)
+            p = EWBParams(**{n: vals[n] for n in MODEL_PARAMS})
+            preds.append(self._predict_one(p, vals["theta0_deg"], tr, self.n_sub[k]))
+        return preds
+
+    def _predict_one(self, p: EWBParams, theta0, tr: dict, n_sub: int) -> dict:
+        if self.stage == "gap":
+            return {"x_m": gap(tr["theta_deg"], p.p2, p.p1, p.p0)}
+        if self.stage == "force":
+            return {"force_N": clamp_force(tr["x_m"], p.F_rt, p.a, p.b, p.c)}
+        if self.stage == "torque":
+            return {"torque_Nm": brake_torque(tr["force_N"], p.mu, tr["r_eff_m"])}
+        s = _motor_states(p, tr["voltage_V"], tr["dt"], theta0, n_sub, self.method, None)
+        theta = s[:, 2] * (180.0 / jnp.pi)
+        out = {"theta_deg": theta, "current_A": s[:, 0]}
+        if self.stage == "chain":
+            x = gap(theta, p.p2, p.p1, p.p0)
+            F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
+            out |= {"x_m": x, "force_N": F, "torque_Nm": brake_torque(F, p.mu, tr["r_eff_m"])}
+        return out
+
+    def __call__(self, u: jnp.ndarray, data: dict) -> jnp.ndarray:
+        res = []
+        for k, pred in enumerate(self.predict(u, data)):
+            tr = data["traces"][k]
+            for ch in self.channels[k]:
+                res.append((pred[ch] - tr[ch]) / tr["sigma"][ch])
+        return jnp.concatenate(res)
+
+
+@eqx.filter_jit
+def _solve(problem: _Problem, u0, data, rtol, atol, max_steps):
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    return optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
+
+
+@eqx.filter_jit
+def _jacobian(problem: _Problem, u, data):
+    return jax.jacfwd(problem)(u, data)
+
+
+@eqx.filter_jit
+def _residuals(problem: _Problem, u, data):
+    return problem(u, data)
+
+
+@eqx.filter_jit
+def _predictions(problem: _Problem, u, data):
+    return problem.predict(u, data)
+
+
+@eqx.filter_jit
+def _costs(problem: _Problem, us, data):
+    return jax.vmap(lambda u: jnp.sum(problem(u, data) ** 2))(us)
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """The outcome of a least-squares fit (immutable).
+
+    Attributes
+    ----------
+    stage
+        What was fitted (see module docstring).
+    trace_names
+        Names of the fitted traces, in order.
+    free, per_trace
+        Names of the varied parameters; ``per_trace`` ones were fitted per trace.
+    params
+        Fitted parameters for each trace (SI units).
+    theta0_deg
+        Start angle of each trace, degrees.
+    stderr
+        Standard error of each free shared parameter (SI units); for per-trace ones
+        ``"name[k]"`` keys. ``None`` where the Jacobian gives none.
+    corr
+        Correlation matrix of the free coordinates, ordered as ``corr_names``.
+    condition_number
+        Condition number of the column-scaled Jacobian at the optimum.
+    metrics, trace_metrics
+        Pooled and per-trace metrics per channel (see :mod:`ewb_ident.metrics`).
+    noise, sigma
+        Per trace and channel: the sensor-noise estimate from the data, and the noise
+        level the final weights used (from the residuals), in the channel's unit.
+    converged
+        Whether the solver reported success on every solve.
+    message
+        The solver's result, in words.
+    n_steps
+        Solver steps, summed over the solves.
+    warnings
+        Plain-language warnings (identifiability, solver), for the user to read.
+    predictions
+        The model's prediction of every fitted channel, per trace (NumPy arrays).
+    """
+
+    stage: str
+    trace_names: tuple[str, ...]
+    free: tuple[str, ...]
+    per_trace: tuple[str, ...]
+    params: tuple[EWBParams, ...]
+    theta0_deg: tuple[float, ...]
+    stderr: dict[str, float | None]
+    corr: np.ndarray
+    corr_names: tuple[str, ...]
+    condition_number: float
+    metrics: dict[str, dict[str, float | None]]
+    trace_metrics: tuple[dict[str, dict[str, float | None]], ...]
+    noise: tuple[dict[str, float], ...]
+    sigma: tuple[dict[str, float], ...]
+    converged: bool
+    message: str
+    n_steps: int
+    cost: float
+    warnings: tuple[str, ...]
+    predictions: tuple[dict[str, np.ndarray], ...] = field(repr=False)
+    u: np.ndarray = field(repr=False)
+
+    @property
+    def values(self) -> dict[str, float]:
+        """All parameter values (SI) of the first trace, plus ``theta0_deg``."""
+        return self.params[0].as_dict() | {"theta0_deg": self.theta0_deg[0]}
+
+    def to_json(self) -> dict[str, Any]:
+        """The contract ``fit.json`` document (plain JSON types, no NaN)."""
+        shared = [n for n in self.free if n not in self.per_trace]
+        values = self.params[0].as_dict()
+        if len(self.params) > 1:  # per-trace parameters: report the mean, each below
+            for name in self.per_trace:
+                if name in values:
+                    values[name] = float(np.mean([p.as_dict()[name] for p in self.params]))
+        per_trace = []
+        for k, name in enumerate(self.trace_names):
+            vals = {n: self.params[k].as_dict()[n] for n in self.per_trace if n in MODEL_PARAMS}
+            if "theta0_deg" in self.per_trace:
+                vals["theta0_deg"] = self.theta0_deg[k]
+            per_trace.append(
+                {
+                    "trace": name,
+                    "params": vals,
+                    "stderr": {n: self.stderr.get(f"{n}[{k}]") for n in self.per_trace},
+                    "metrics": self.trace_metrics[k],
+                    "noise_sigma": self.noise[k],
+                    "residual_sigma": self.sigma[k],
+                }
+            )
+        stderr = {n: self.stderr.get(n) for n in values}
+        if len(self.params) == 1:
+            stderr |= {n: self.stderr.get(f"{n}[0]") for n in self.per_trace if n in values}
+        return {
+            "params": values,
+            "stderr": stderr,
+            "metrics": self.metrics,
+            "converged": self.converged,
+            "stage": self.stage,
+            "free": list(self.free),
+            "shared": shared,
+            "per_trace_params": list(self.per_trace),
+            "fixed": sorted(n for n in MODEL_PARAMS if n not in self.free),
+            "per_trace": per_trace,
+            "units": {n: PARAMS[n].unit for n in values},
+            "correlation": {
+                "names": list(self.corr_names),
+                "matrix": _finite(self.corr).tolist(),
+            },
+            "condition_number": _finite_or_none(self.condition_number),
+            "solver": {"message": self.message, "steps": self.n_steps, "cost": self.cost},
+            "seed_percent_error": SEED_PERCENT_ERROR,
+            "warnings": list(self.warnings),
+            "stderr_note": (
+                "null: parameter fixed, or not identified by the data (singular Jacobian)"
+            ),
+        }
+
+
+def _finite(a: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(a), a, 0.0)
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+# ----------------------------------------------------------------------------- set-up
+
+
+def _trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
+    needed = set(channels) | set(stage_inputs(stage)) | {"theta_deg"} & set(trace.channels)
+    d: dict[str, Any] = {c: jnp.asarray(trace[c]) for c in needed if trace.has(c)}
+    d["dt"] = jnp.asarray(trace.dt)
+    d["r_eff_m"] = jnp.asarray(trace.r_eff_m)
+    theta0 = float(np.median(trace["theta_deg"][:5])) if trace.has("theta_deg") else 0.0
+    d["theta0_deg"] = jnp.asarray(theta0)
+    return d
+
+
+def _check_request(
+    traces: Sequence[Trace], stage: str, free: Sequence[str], per_trace: Sequence[str]
+) -> None:
+    if stage not in STAGES:
+        raise FitError(f"unknown stage {stage!r}; choose one of {', '.join(STAGES)}")
+    if not traces:
+        raise FitError("no traces to fit")
+    allowed = STAGE_PARAMS[stage]
+    for name in free:
+        if name not in allowed:
+            raise FitError(
+                f"parameter {name!r} is not fitted by stage {stage!r}; "
+                f"its parameters are {', '.join(allowed)}"
+            )
+    for name in per_trace:
+        if name not in free:
+            raise FitError(f"per-trace parameter {name!r} must also be free")
+    for tr in traces:
+        for col in stage_inputs(stage) + stage_channels(stage, tr)[:1]:
+            if not tr.has(col):
+                raise TraceError(
+                    f"{tr.label}: column '{col}', row -: the {stage} stage needs it and the "
+                    "trace has none; fit another stage or record this channel"
+                )
+
+
+def _start_values(
+    traces: Sequence[Trace],
+    stage: str,
+    free: Sequence[str],
+    per_trace: Sequence[str],
+    base: EWBParams,
+) -> dict[str, float]:
+    """A sensible start without hand-tuning.
+
+    Closed forms where the stage is linear in its parameters (gap polynomial, mu);
+    for the whole chain, teacher-forced fits of the motor and force stages first.
+    Keys ``"name[k]"`` hold per-trace values.
+    """
+    start: dict[str, float] = {}
+    want = set(free)
+    if want & {"p2", "p1", "p0"} and all(t.has("theta_deg") and t.has("x_m") for t in traces):
+        th = np.concatenate([t["theta_deg"] for t in traces])
+        x = np.concatenate([t["x_m"] for t in traces])
+        coef = np.linalg.lstsq(np.stack([th * th, th, np.ones_like(th)], 1), x, rcond=None)[0]
+        start |= dict(zip(("p2", "p1", "p0"), map(float, coef), strict=True))
+    if "mu" in want and all(t.has("force_N") and t.has("torque_Nm") for t in traces):
+        F = np.concatenate([t["force_N"] * 2 * t.r_eff_m for t in traces])
+        T = np.concatenate([t["torque_Nm"] for t in traces])
+        start["mu"] = float(np.clip(F @ T / (F @ F), 0.01, 0.99))
+    if stage != "chain":
+        return start
+    for sub in ("motor", "force"):
+        names = [n for n in free if n in STAGE_PARAMS[sub]]
+        cols = stage_inputs(sub) + (STAGE_COLUMNS[sub][1],)
+        if not names or not all(t.has(c) for t in traces for c in cols):
+            continue
+        res = fit(
+            traces,
+            stage=sub,
+            free=names,
+            per_trace=[n for n in per_trace if n in names],
+            fixed=base.as_dict() | {k: v for k, v in start.items() if "[" not in k},
+        )
+        if not res.converged:
+            continue
+        for k, p in enumerate(res.params):
+            vals = p.as_dict() | {"theta0_deg": res.theta0_deg[k]}
+            for n in names:
+                start[f"{n}[{k}]" if n in per_trace else n] = vals[n]
+    return start
+
+
+def _force_grid(
+    names: Sequence[str], start: Mapping[str, float], base: EWBParams
+) -> list[dict[str, float]]:
+    """Starting points for the bell. Its shape parameters trade off and its cost has flat
+    regions (a bell that never rises), so the solve starts from the best of a small grid
+    around the seed values."""
+    grid = {"a": (0.5, 1.0, 2.0), "b": (0.6, 1.0, 2.0), "c": (-3.0, 0.0, 3.0)}
+    axes = [[(n, f) for f in grid[n]] for n in names]
+    points = []
+    for combo in itertools.product(*axes):
+        pt = dict(start)
+        for n, f in combo:
+            info, ref = PARAMS[n], float(getattr(base, n))
+            pt[n] = ref + f * info.scale if info.transform == "affine" else ref * f
+        points.append(pt)
+    return points
+
+
+# ----------------------------------------------------------------------------- fit
+
+
+def fit(
+    traces: Trace | Sequence[Trace],
+    *,
+    stage: Stage = "chain",
+    free: Iterable[str] | None = None,
+    per_trace: Iterable[str] | None = None,
+    fixed: Mapping[str, float] | None = None,
+    start: Mapping[str, float] | None = None,
+    integrator: Integrator = EXPONENTIAL,
+    max_steps: int = 300,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+) -> FitResult:
+    """Fit the EWB model to one or several traces by weighted least squares.
+
+    Parameters
+    ----------
+    traces
+        One :class:`~ewb_ident.traces.Trace` or several; several share every free
+        parameter except those in ``per_trace``.
+    stage
+        ``"chain"`` (from voltage alone, every recorded channel), or one stage
+        teacher-forced from its measured input: ``"motor"``, ``"gap"``, ``"force"``,
+        ``"torque"``.
+    free
+        Parameters to vary (default: :func:`default_free`).
+    per_trace
+        Free parameters fitted separately for each trace (default: the start angle),
+        e.g. ``("c", "p0")`` for the contact point after a pad change.
+    fixed
+        Values (SI) of parameters held fixed, overriding the seed values.
+    start
+        Starting values (SI) of free parameters, overriding the automatic start.
+    integrator
+        How the motor is integrated (motor and chain stages).
+    max_steps
+        Solver step limit per solve.
+    rtol, atol
+        Solver tolerances (on the unconstrained coordinates).
+
+    Returns
+    -------
+    FitResult
+        Never raises for a fit that fails to converge: ``converged`` is False and
+        ``message`` and ``warnings`` say why.
+
+    Raises
+    ------
+    FitError
+        Unknown stage or parameter.
+    TraceError
+        A trace lacks a column the stage needs.
+    """
+    traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
+    free_t = tuple(default_free(stage, traces) if free is None else free)
+    pt = DEFAULT_PER_TRACE if per_trace is None else tuple(per_trace)
+    pt = tuple(n for n in free_t if n in pt)
+    _check_request(traces, stage, free_t, pt)
+    base = EWBParams().replace(**{k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS})
+    notes: list[str] = []
+    if integrator.method == "heun":
+        rho = heun_amplification(base, min(t.dt for t in traces) / 1)
+        if rho > 1:
+            notes.append(
+                f"Heun's method at the seed's step is unstable for this motor (amplification "
+                f"{rho:.3g} > 1): the simulation diverges; use the exponential integrator"
+            )
+
+    channels = tuple(stage_channels(stage, t) for t in traces)
+    shared = tuple(n for n in free_t if n not in pt)
+    problem = _Problem(
+        stage=stage,
+        shared=shared,
+        per_trace=pt,
+        channels=channels,
+        n_sub=tuple(integrator.substeps(t.dt, False) for t in traces),
+        method=integrator.method,
+    )
+    tdata = [_trace_data(t, stage, ch) for t, ch in zip(traces, channels, strict=True)]
+    noise = tuple(
+        {ch: noise_sigma(t[ch]) for ch in chs} for t, chs in zip(traces, channels, strict=True)
+    )
+    sigma = [
+        {ch: max(s, _floor(t[ch])) for ch, s in nz.items()}
+        for t, nz in zip(traces, noise, strict=True)
+    ]
+    fixed_vals = {n: jnp.asarray(v) for n, v in base.as_dict().items()}
+
+    def data_with(sig):
+        trs = [
+            d | {"sigma": {c: jnp.asarray(v) for c, v in s.items()}}
+            for d, s in zip(tdata, sig, strict=True)
+        ]
+        return {"traces": trs, "fixed": fixed_vals}
+
+    # Starting point: automatic, then the user's values on top.
+    st = _start_values(traces, stage, free_t, pt, base) | dict(start or {})
+    u0 = _to_u(problem, st, base, tdata)
+    data = data_with(sigma)
+    bell = [n for n in ("a", "b", "c") if n in free_t and n not in (start or {})]
+    if stage == "force" and bell:
+        us = jnp.stack([_to_u(problem, g, base, tdata) for g in _force_grid(bell, st, base)])
+        costs = np.asarray(_costs(problem, us, data))
+        u0 = us[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))]
+
+    # Solve, re-estimate the noise levels from the residuals, solve again.
+    sol = _solve(problem, u0, data, rtol, atol, max_steps)
+    results = [sol.result]
+    steps = int(sol.stats["num_steps"])
+    r = np.asarray(_residuals(problem, sol.value, data))
+    if np.all(np.isfinite(r)):
+        sigma = _residual_sigma(r, channels, traces, sigma)
+        data = data_with(sigma)
+        sol = _solve(problem, sol.value, data, rtol, atol, max_steps)
+        results.append(sol.result)
+        steps += int(sol.stats["num_steps"])
+    u = sol.value
+    r = np.asarray(_residuals(problem, u, data))
+    ok = all(res == optx.RESULTS.successful for res in results) and bool(np.all(np.isfinite(r)))
+    message = "successful" if ok else _message(results, r, max_steps)
+    if not ok:
+        notes.append(f"the solver did not converge: {message}")
+
+    # Uncertainty from the Jacobian at the optimum.
+    names = shared + tuple(f"{n}[{k}]" for k in range(len(traces)) for n in pt)
+    infos = [PARAMS[n] for n in shared] + [PARAMS[n] for _ in traces for n in pt]
+    J = np.asarray(_jacobian(problem, u, data))
+    stderr, corr, cond = _uncertainty(J, r, np.asarray(u), infos)
+    stderr_d = dict(zip(names, stderr, strict=True))
+    notes += _identifiability_notes(names, corr, cond, stderr_d)
+
+    preds = [
+        {k: np.asarray(v) for k, v in p.items() if k in chs}
+        for p, chs in zip(_predictions(problem, u, data), channels, strict=True)
+    ]
+    params, theta0 = [], []
+    for k, d in enumerate(tdata):
+        vals = problem.values(u, dict(fixed_vals) | {"theta0_deg": d["theta0_deg"]}, k)
+        params.append(EWBParams(**{n: float(vals[n]) for n in MODEL_PARAMS}))
+        theta0.append(float(vals["theta0_deg"]))
+    if stage in ("force", "chain") and any(n in free_t for n in ("a", "b", "c")):
+        notes += _saturation_notes(traces, preds, params, corr, names)
+    trace_metrics = tuple(
+        {ch: channel_metrics(p[ch], t[ch]) for ch in chs}
+        for p, t, chs in zip(preds, traces, channels, strict=True)
+    )
+    pooled = {}
+    for ch in dict.fromkeys(c for chs in channels for c in chs):
+        sim = np.concatenate([p[ch] for p in preds if ch in p])
+        meas = np.concatenate([t[ch] for t, chs in zip(traces, channels, strict=True) if ch in chs])
+        pooled[ch] = channel_metrics(sim, meas)
+    return FitResult(
+        stage=stage,
+        trace_names=tuple(t.name for t in traces),
+        free=free_t,
+        per_trace=pt,
+        params=tuple(params),
+        theta0_deg=tuple(theta0),
+        stderr=stderr_d,
+        corr=corr,
+        corr_names=names,
+        condition_number=cond,
+        metrics=pooled,
+        trace_metrics=trace_metrics,
+        noise=noise,
+        sigma=tuple(sigma),
+        converged=ok,
+        message=message,
+        n_steps=steps,
+        cost=float(0.5 * np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),
+        warnings=tuple(notes),
+        predictions=tuple(preds),
+        u=np.asarray(u),
+    )
+
+
+def _floor(y: np.ndarray) -> float:
+    """Smallest noise level a channel is weighted with: a noise-free channel would
+    otherwise get an infinite weight."""
+    return 1e-6 * float(np.max(y) - np.min(y)) + 1e-12
+
+
+def _to_u(problem: _Problem, values: Mapping[str, float], base: EWBParams, tdata) -> jnp.ndarray:
+    """The unconstrained vector for start ``values`` (SI; ``"name[k]"`` per trace)."""
+    defaults = base.as_dict()
+    u = [PARAMS[n].to_unconstrained(values.get(n, defaults.get(n))) for n in problem.shared]
+    for k, d in enumerate(tdata):
+        for n in problem.per_trace:
+            v = float(d["theta0_deg"]) if n == "theta0_deg" else defaults[n]
+            u.append(PARAMS[n].to_unconstrained(values.get(f"{n}[{k}]", values.get(n, v))))
+    return jnp.asarray(np.array(u, dtype=float))
+
+
+def _residual_sigma(r, channels, traces, old):
+    """Per-trace, per-channel noise levels from the weighted residuals (ML estimate)."""
+    out, i = [], 0
+    for t, chs, sig in zip(traces, channels, old, strict=True):
+        s = {}
+        for ch in chs:
+            rk = r[i : i + t.n] * sig[ch]
+            s[ch] = max(float(np.sqrt(np.mean(rk * rk))), _floor(t[ch]))
+            i += t.n
+        out.append(s)
+    return out
+
+
+def _message(results, r, max_steps) -> str:
+    if not np.all(np.isfinite(r)):
+        return "the model produced non-finite values at the solution"
+    for res in results:
+        if res == optx.RESULTS.max_steps_reached:
+            return f"step limit ({max_steps}) reached before the tolerances were met"
+        if res != optx.RESULTS.successful:
+            return optx.RESULTS[res] if hasattr(optx.RESULTS, "__getitem__") else str(res)
+    return "unknown failure"
+
+
+def _uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> tuple:
+    """Standard errors (SI), correlation and condition number from the Jacobian."""
+    n, p = J.shape
+    if p == 0:
+        return [], np.zeros((0, 0)), 1.0
+    scale = np.linalg.norm(J, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    Js = J / scale
+    _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    keep = s > s[0] * 1e-12
+    inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
+    dof = max(n - p, 1)
+    cov_u = inv / np.outer(scale, scale) * float(r @ r) / dof
+    sd_u = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    corr = cov_u / np.outer(np.where(sd_u > 0, sd_u, 1), np.where(sd_u > 0, sd_u, 1))
+    stderr = []
+    for j, info in enumerate(infos):
+        se = float(abs(info.dp_du(u[j])) * sd_u[j])
+        stderr.append(se if np.isfinite(se) and keep.all() else None)
+    return stderr, corr, cond
+
+
+def _identifiability_notes(names, corr, cond, stderr) -> list[str]:
+    notes = []
+    pairs = [
+        (names[i], names[j], corr[i, j])
+        for i in range(len(names))
+        for j in range(i + 1, len(names))
+        if abs(corr[i, j]) > STRONG_CORRELATION
+    ]
+    if cond > ILL_CONDITIONED or pairs:
+        txt = ", ".join(f"{a}-{b} (correlation {c:+.3f})" for a, b, c in pairs)
+        notes.append(
+            f"the data do not pin down every free parameter separately (condition number "
+            f"{cond:.3g})"
+            + (f"; these trade off: {txt}" if txt else "")
+            + ". Their standard errors are large for that reason; fix one of each pair or "
+            "record a trace that separates them."
+        )
+    none = [n for n, s in stderr.items() if s is None]
+    if none:
+        notes.append(f"no standard error for {', '.join(none)}: the Jacobian is singular there")
+    return notes
+
+
+def _saturation_notes(traces, preds, params, corr, names) -> list[str]:
+    """Say plainly when the piston never passes the bell's centre c."""
+    notes = []
+    for t, pred, p in zip(traces, preds, params, strict=True):
+        x = t["x_m"] if t.has("x_m") else pred.get("x_m")
+        if x is None:
+            continue
+        c, a = float(p.c), float(p.a)
+        if float(np.max(x)) < c:
+            idx = {n: i for i, n in enumerate(names)}
+            rho = [
+                f"{m}-{n} {corr[idx[m], idx[n]]:+.2f}"
+                for m, n in (("a", "b"), ("a", "c"), ("b", "c"))
+                if m in idx and n in idx
+            ]
+            notes.append(
+                f"{t.name}: the piston never passes the bell's centre c (max x = "
+                f"{np.max(x) * 1e3:.3f} mm < c = {c * 1e3:.3f} mm, a = {a * 1e3:.3f} mm), so "
+                "a, b and c are inferred from the rising flank alone and trade off"
+                + (f" (correlations {', '.join(rho)})" if rho else "")
+                + ": nearby combinations fit almost equally well. Record an apply that drives "
+                "the piston through full clamping, or fix b, to identify them."
+            )
+    return notes

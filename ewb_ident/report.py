@@ -1,0 +1,54 @@
+"""Human-readable summaries of results (terminal text now; the HTML report builds on it)."""
+
+from __future__ import annotations
+
+from .fit import FitResult
+from .metrics import SEED_PERCENT_ERROR
+from .params import PARAMS, SEED
+
+
+def _fmt(value: float | None, digits: int = 4) -> str:
+    return "-" if value is None else f"{value:.{digits}g}"
+
+
+def fit_summary(result: FitResult) -> str:
+    """A short plain-text summary of a fit: parameters, metrics, warnings."""
+    lines = [
+        f"fit of {', '.join(result.trace_names)} (stage: {result.stage}) - "
+        + ("converged" if result.converged else f"NOT CONVERGED: {result.message}"),
+        "",
+        f"  {'param':<11}{'estimate':>13}{'std. error':>13}{'seed':>12}  unit",
+    ]
+    seed = SEED.as_dict()
+    for k, name in enumerate(result.free):
+        if name in result.per_trace:
+            values = [result.params[j].as_dict().get(name) for j in range(len(result.params))]
+            if name == "theta0_deg":
+                values = list(result.theta0_deg)
+            for j, v in enumerate(values):
+                se = result.stderr.get(f"{name}[{j}]")
+                label = f"{name}[{j}]" if len(values) > 1 else name
+                lines.append(
+                    f"  {label:<11}{_fmt(v):>13}{_fmt(se, 2):>13}{_fmt(seed.get(name)):>12}  "
+                    f"{PARAMS[name].unit}"
+                )
+            continue
+        v = result.params[0].as_dict()[name]
+        lines.append(
+            f"  {name:<11}{_fmt(v):>13}{_fmt(result.stderr.get(name), 2):>13}"
+            f"{_fmt(seed.get(name)):>12}  {PARAMS[name].unit}"
+        )
+    lines += ["", f"  {'channel':<11}{'RMSE':>12}{'NRMSE %':>10}{'% error':>10}{'seed %':>9}"]
+    for ch, m in result.metrics.items():
+        lines.append(
+            f"  {ch:<11}{_fmt(m['rmse']):>12}{_fmt(m['nrmse_pct'], 3):>10}"
+            f"{_fmt(m['percent_error'], 3):>10}{_fmt(SEED_PERCENT_ERROR.get(ch), 2):>9}"
+        )
+    lines.append(
+        "  (NRMSE: RMSE over the channel's range; % error: relative L2 error, "
+        "see ewb_ident.metrics)"
+    )
+    if result.warnings:
+        lines.append("")
+        lines += [f"  warning: {w}" for w in result.warnings]
+    return "\n".join(lines)
