@@ -225,6 +225,13 @@ class FitResult:
         Plain-language warnings (identifiability, solver), for the user to read.
     predictions
         The model's prediction of every fitted channel, per trace (NumPy arrays).
+    u
+        The solution in unconstrained coordinates (shared parameters, then the
+        per-trace ones trace by trace), as ``corr_names`` orders them.
+    problem, data
+        The residual function and its data (measured channels, weights ``sigma``,
+        fixed values): ``problem(u, data)`` gives the weighted residuals and
+        ``problem.predict(u, data)`` the model's channels. The posterior starts here.
     """
 
     stage: str
@@ -248,6 +255,8 @@ class FitResult:
     warnings: tuple[str, ...]
     predictions: tuple[dict[str, np.ndarray], ...] = field(repr=False)
     u: np.ndarray = field(repr=False)
+    problem: _Problem = field(repr=False)
+    data: dict = field(repr=False)
 
     @property
     def values(self) -> dict[str, float]:
@@ -594,6 +603,8 @@ def fit(
         warnings=tuple(notes),
         predictions=tuple(preds),
         u=np.asarray(u),
+        problem=problem,
+        data=data,
     )
 
 

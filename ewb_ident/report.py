@@ -20,7 +20,7 @@ def fit_summary(result: FitResult) -> str:
         f"  {'param':<11}{'estimate':>13}{'std. error':>13}{'seed':>12}  unit",
     ]
     seed = SEED.as_dict()
-    for k, name in enumerate(result.free):
+    for name in result.free:
         if name in result.per_trace:
             values = [result.params[j].as_dict().get(name) for j in range(len(result.params))]
             if name == "theta0_deg":
