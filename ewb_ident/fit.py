@@ -49,7 +49,9 @@ DEFAULT_PER_TRACE: tuple[str, ...] = ("theta0_deg",)
 #: parameters are not separately identified by the data.
 ILL_CONDITIONED = 1.0e6
 #: Above this |correlation| a pair of parameters is named as trading off.
-STRONG_CORRELATION = 0.95
+STRONG_CORRELATION = 0.99
+#: Above this standard error in the O(1) coordinate a parameter is poorly determined.
+POORLY_DETERMINED = 0.3
 
 
 class FitError(ValueError):
@@ -76,7 +78,8 @@ def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
     Motor: ``kb``, ``M``, ``v`` and the start angle; ``R`` too when current is recorded.
     ``kT`` and ``L`` stay fixed: with no load-torque measurement only ratios to ``kT``
     are identified, and an armature pole of 1-5 ms is not resolved at 100-200 Hz.
-    Gap: ``p2, p1, p0``. Force: ``a, b, c`` (``F_rt`` fixed at the seed's rated force).
+    Gap: ``p2, p1, p0``. Force: ``F_rt, a, b, c`` (a rig's rated force differs from the
+    seed's 3500 N, and a wrong fixed F_rt biases a, b, c and mu).
     Torque: ``mu``. Chain: each stage's defaults for the stages whose output is recorded
     (the gap polynomial only when ``x_m`` is, since otherwise it trades off with ``c``).
     """
@@ -86,7 +89,7 @@ def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
     if stage == "gap":
         return ("p2", "p1", "p0")
     if stage == "force":
-        return ("a", "b", "c")
+        return ("F_rt", "a", "b", "c")
     if stage == "torque":
         return ("mu",)
     free = list(default_free("motor", traces))
@@ -368,11 +371,14 @@ def _start_values(
     free: Sequence[str],
     per_trace: Sequence[str],
     base: EWBParams,
+    staged: bool = False,
 ) -> dict[str, float]:
     """A sensible start without hand-tuning.
 
-    Closed forms where the stage is linear in its parameters (gap polynomial, mu);
-    for the whole chain, teacher-forced fits of the motor and force stages first.
+    Closed forms where a stage is linear in its parameters (gap polynomial, mu); for the
+    bell, the best point of a small grid (teacher-forced on measured x and force). With
+    ``staged``, the whole chain starts from teacher-forced least-squares fits of the
+    motor and force stages (the fallback when a fit from the quick start fails).
     Keys ``"name[k]"`` hold per-trace values.
     """
     start: dict[str, float] = {}
@@ -386,7 +392,14 @@ def _start_values(
         F = np.concatenate([t["force_N"] * 2 * t.r_eff_m for t in traces])
         T = np.concatenate([t["torque_Nm"] for t in traces])
         start["mu"] = float(np.clip(F @ T / (F @ F), 0.01, 0.99))
-    if stage != "chain":
+    bell = [n for n in ("F_rt", "a", "b", "c") if n in want]
+    if (
+        bell
+        and stage in ("force", "chain")
+        and all(t.has("x_m") and t.has("force_N") for t in traces)
+    ):
+        start |= _bell_grid_start(traces, bell, start, base)
+    if stage != "chain" or not staged:
         return start
     for sub in ("motor", "force"):
         names = [n for n in free if n in STAGE_PARAMS[sub]]
@@ -399,6 +412,7 @@ def _start_values(
             free=names,
             per_trace=[n for n in per_trace if n in names],
             fixed=base.as_dict() | {k: v for k, v in start.items() if "[" not in k},
+            start={k: v for k, v in start.items() if k in names},
         )
         if not res.converged:
             continue
@@ -407,6 +421,42 @@ def _start_values(
             for n in names:
                 start[f"{n}[{k}]" if n in per_trace else n] = vals[n]
     return start
+
+
+def _bell_grid_start(
+    traces: Sequence[Trace], names: Sequence[str], start: Mapping[str, float], base: EWBParams
+) -> dict[str, float]:
+    """The best of a small grid of bell parameters, by the teacher-forced force cost.
+
+    The bell's shape parameters trade off and its cost has flat regions (a bell that
+    never rises), so a local solver needs a start in the right valley.
+    """
+    problem = _Problem(
+        stage="force",
+        shared=tuple(names),
+        per_trace=(),
+        channels=tuple(("force_N",) for _ in traces),
+        n_sub=tuple(1 for _ in traces),
+        method="exponential",
+    )
+    tdata = [_trace_data(t, "force", ("force_N",)) for t in traces]
+    data = {
+        "traces": [
+            d
+            | {
+                "sigma": {
+                    "force_N": jnp.asarray(max(noise_sigma(t["force_N"]), _floor(t["force_N"])))
+                }
+            }
+            for d, t in zip(tdata, traces, strict=True)
+        ],
+        "fixed": {n: jnp.asarray(v) for n, v in base.as_dict().items()},
+    }
+    grid = _force_grid([n for n in names if n != "F_rt"], start, base)
+    us = jnp.stack([_to_u(problem, g, base, tdata) for g in grid])
+    costs = np.asarray(_costs(problem, us, data))
+    best = grid[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))]
+    return {n: best.get(n, float(getattr(base, n))) for n in names}
 
 
 def _force_grid(
@@ -442,6 +492,7 @@ def fit(
     max_steps: int = 300,
     rtol: float = 1e-8,
     atol: float = 1e-10,
+    _staged: bool = False,
 ) -> FitResult:
     """Fit the EWB model to one or several traces by weighted least squares.
 
@@ -526,14 +577,9 @@ def fit(
         return {"traces": trs, "fixed": fixed_vals}
 
     # Starting point: automatic, then the user's values on top.
-    st = _start_values(traces, stage, free_t, pt, base) | dict(start or {})
+    st = _start_values(traces, stage, free_t, pt, base, staged=_staged) | dict(start or {})
     u0 = _to_u(problem, st, base, tdata)
     data = data_with(sigma)
-    bell = [n for n in ("a", "b", "c") if n in free_t and n not in (start or {})]
-    if stage == "force" and bell:
-        us = jnp.stack([_to_u(problem, g, base, tdata) for g in _force_grid(bell, st, base)])
-        costs = np.asarray(_costs(problem, us, data))
-        u0 = us[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))]
 
     # Solve, re-estimate the noise levels from the residuals, solve again.
     sol = _solve(problem, u0, data, rtol, atol, max_steps)
@@ -550,6 +596,21 @@ def fit(
     r = np.asarray(_residuals(problem, u, data))
     ok = all(res == optx.RESULTS.successful for res in results) and bool(np.all(np.isfinite(r)))
     message = "successful" if ok else _message(results, r, max_steps)
+    if not ok and stage == "chain" and not _staged:
+        # Retry from teacher-forced fits of each stage: slower, but starts in the valley.
+        return fit(
+            traces,
+            stage=stage,
+            free=free_t,
+            per_trace=pt,
+            fixed=fixed,
+            start=start,
+            integrator=integrator,
+            max_steps=max_steps,
+            rtol=rtol,
+            atol=atol,
+            _staged=True,
+        )
     if not ok:
         notes.append(f"the solver did not converge: {message}")
 
@@ -557,9 +618,9 @@ def fit(
     names = shared + tuple(f"{n}[{k}]" for k in range(len(traces)) for n in pt)
     infos = [PARAMS[n] for n in shared] + [PARAMS[n] for _ in traces for n in pt]
     J = np.asarray(_jacobian(problem, u, data))
-    stderr, corr, cond = _uncertainty(J, r, np.asarray(u), infos)
+    stderr, corr, cond, sd_u = _uncertainty(J, r, np.asarray(u), infos)
     stderr_d = dict(zip(names, stderr, strict=True))
-    notes += _identifiability_notes(names, corr, cond, stderr_d)
+    notes += _identifiability_notes(names, corr, cond, stderr_d, sd_u)
 
     preds = [
         {k: np.asarray(v) for k, v in p.items() if k in chs}
@@ -653,7 +714,7 @@ def _uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> tuple:
     """Standard errors (SI), correlation and condition number from the Jacobian."""
     n, p = J.shape
     if p == 0:
-        return [], np.zeros((0, 0)), 1.0
+        return [], np.zeros((0, 0)), 1.0, np.zeros(0)
     scale = np.linalg.norm(J, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     Js = J / scale
@@ -669,25 +730,40 @@ def _uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> tuple:
     for j, info in enumerate(infos):
         se = float(abs(info.dp_du(u[j])) * sd_u[j])
         stderr.append(se if np.isfinite(se) and keep.all() else None)
-    return stderr, corr, cond
+    return stderr, corr, cond, np.where(keep.all(), sd_u, np.inf)
 
 
-def _identifiability_notes(names, corr, cond, stderr) -> list[str]:
+def _identifiability_notes(names, corr, cond, stderr, sd_u) -> list[str]:
+    """Plain-language notes on what the data do not pin down.
+
+    A parameter is *poorly determined* when its standard error in the O(1) coordinate
+    exceeds :data:`POORLY_DETERMINED` (for log-scaled parameters: a relative error above
+    30 %). Pairs correlated beyond :data:`STRONG_CORRELATION` are named, since their
+    single standard errors understate how they move together.
+    """
     notes = []
+    if cond > ILL_CONDITIONED:
+        notes.append(
+            f"the fit is ill-conditioned (condition number {cond:.3g}): some combination of "
+            "the free parameters is not identified by this trace; fix a parameter or record "
+            "a richer input"
+        )
+    poor = [n for n, s in zip(names, sd_u, strict=True) if not s <= POORLY_DETERMINED]
+    if poor:
+        notes.append(
+            f"poorly determined by this trace: {', '.join(poor)} (standard error beyond "
+            f"{POORLY_DETERMINED:.0%} of its scale); treat their values as unreliable"
+        )
     pairs = [
-        (names[i], names[j], corr[i, j])
+        f"{names[i]}-{names[j]} ({corr[i, j]:+.3f})"
         for i in range(len(names))
         for j in range(i + 1, len(names))
         if abs(corr[i, j]) > STRONG_CORRELATION
     ]
-    if cond > ILL_CONDITIONED or pairs:
-        txt = ", ".join(f"{a}-{b} (correlation {c:+.3f})" for a, b, c in pairs)
+    if pairs:
         notes.append(
-            f"the data do not pin down every free parameter separately (condition number "
-            f"{cond:.3g})"
-            + (f"; these trade off: {txt}" if txt else "")
-            + ". Their standard errors are large for that reason; fix one of each pair or "
-            "record a trace that separates them."
+            "strongly correlated estimates (their errors move together, so single standard "
+            f"errors understate joint uncertainty): {', '.join(pairs)}"
         )
     none = [n for n, s in stderr.items() if s is None]
     if none:
@@ -715,7 +791,8 @@ def _saturation_notes(traces, preds, params, corr, names) -> list[str]:
                 f"{np.max(x) * 1e3:.3f} mm < c = {c * 1e3:.3f} mm, a = {a * 1e3:.3f} mm), so "
                 "a, b and c are inferred from the rising flank alone and trade off"
                 + (f" (correlations {', '.join(rho)})" if rho else "")
-                + ": nearby combinations fit almost equally well. Record an apply that drives "
-                "the piston through full clamping, or fix b, to identify them."
+                + ": with more noise or a shorter apply, quite different (a, b, c) fit almost "
+                "equally well. Their standard errors above include this; to pin them down, "
+                "record an apply that drives the piston through full clamping, or fix b."
             )
     return notes
