@@ -75,9 +75,10 @@ def stage_inputs(stage: str) -> tuple[str, ...]:
 def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
     """The parameters a fit varies when the user does not say.
 
-    Motor: ``kb``, ``M``, ``v`` and the start angle; ``R`` too when current is recorded.
-    ``kT`` and ``L`` stay fixed: with no load-torque measurement only ratios to ``kT``
-    are identified, and an armature pole of 1-5 ms is not resolved at 100-200 Hz.
+    Motor: ``kb``, ``M``, ``v`` and the start angle; ``R`` and ``L`` too when current is
+    recorded (without it, voltage -> angle identifies only three combinations of the
+    motor's parameters). ``kT`` stays fixed: with no load-torque measurement only the
+    ratios ``M/kT`` and ``v/kT`` are identified.
     Gap: ``p2, p1, p0``. Force: ``F_rt, a, b, c`` (a rig's rated force differs from the
     seed's 3500 N, and a wrong fixed F_rt biases a, b, c and mu).
     Torque: ``mu``. Chain: each stage's defaults for the stages whose output is recorded
@@ -85,7 +86,7 @@ def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
     """
     if stage == "motor":
         with_current = all(t.has("current_A") for t in traces)
-        return ("R",) * with_current + ("kb", "M", "v", "theta0_deg")
+        return ("R", "L") * with_current + ("kb", "M", "v", "theta0_deg")
     if stage == "gap":
         return ("p2", "p1", "p0")
     if stage == "force":
@@ -536,9 +537,12 @@ def fit(
     """
     traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
     free_t = tuple(default_free(stage, traces) if free is None else free)
-    pt = DEFAULT_PER_TRACE if per_trace is None else tuple(per_trace)
-    pt = tuple(n for n in free_t if n in pt)
+    if per_trace is None:
+        pt = tuple(n for n in free_t if n in DEFAULT_PER_TRACE)
+    else:
+        pt = tuple(per_trace)
     _check_request(traces, stage, free_t, pt)
+    pt = tuple(n for n in free_t if n in pt)  # in the order of free
     base = EWBParams().replace(**{k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS})
     notes: list[str] = []
     if integrator.method == "heun":
@@ -594,7 +598,7 @@ def fit(
         steps += int(sol.stats["num_steps"])
     u = sol.value
     r = np.asarray(_residuals(problem, u, data))
-    ok = all(res == optx.RESULTS.successful for res in results) and bool(np.all(np.isfinite(r)))
+    ok = all(_is(res, optx.RESULTS.successful) for res in results) and bool(np.all(np.isfinite(r)))
     message = "successful" if ok else _message(results, r, max_steps)
     if not ok and stage == "chain" and not _staged:
         # Retry from teacher-forced fits of each stage: slower, but starts in the valley.
@@ -699,14 +703,20 @@ def _residual_sigma(r, channels, traces, old):
     return out
 
 
+def _is(result, item) -> bool:
+    """Whether a solver result code is ``item`` (compared by meaning: the enumeration's
+    items do not compare equal across optimistix's and lineax's result classes)."""
+    return optx.RESULTS[result] == optx.RESULTS[item]
+
+
 def _message(results, r, max_steps) -> str:
     if not np.all(np.isfinite(r)):
         return "the model produced non-finite values at the solution"
     for res in results:
-        if res == optx.RESULTS.max_steps_reached:
+        if _is(res, optx.RESULTS.nonlinear_max_steps_reached):
             return f"step limit ({max_steps}) reached before the tolerances were met"
-        if res != optx.RESULTS.successful:
-            return optx.RESULTS[res] if hasattr(optx.RESULTS, "__getitem__") else str(res)
+        if not _is(res, optx.RESULTS.successful):
+            return str(optx.RESULTS[res])
     return "unknown failure"
 
 

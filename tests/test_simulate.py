@@ -1,0 +1,125 @@
+"""The integrator against an independent reference, and the seed's Heun trap."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from ewb_ident.params import EWBParams
+from ewb_ident.physics import clamp_force, gap
+from ewb_ident.simulate import (
+    SEED_HEUN,
+    Integrator,
+    NumericalWarning,
+    heun_amplification,
+    simulate_chain,
+    simulate_motor,
+)
+
+P = EWBParams()  # L/R = 2 ms
+
+
+def _voltage(rate_hz: float, duration_s: float = 1.0, seed: int = 0) -> np.ndarray:
+    """Piecewise-constant voltage with steps and a random part (ZOH per sample)."""
+    n = int(round(duration_s * rate_hz)) + 1
+    t = np.arange(n) / rate_hz
+    rng = np.random.default_rng(seed)
+    V = np.where(t < 0.3, 4.0, 0.0) + np.where((t > 0.6) & (t < 0.8), -3.0, 0.0)
+    return V + 0.5 * rng.standard_normal(n)
+
+
+def _reference(params: EWBParams, V: np.ndarray, dt: float, theta0_deg: float, tau=None):
+    """Radau at tight tolerance, restarted at every sample (the ZOH discontinuities)."""
+    p = {k: float(v) for k, v in params.as_dict().items()}
+
+    def rhs(_t, s, volt):
+        i, w, th = s
+        load = 0.0 if tau is None else tau(s)
+        return [
+            (volt - p["R"] * i - p["kb"] * w) / p["L"],
+            (p["kT"] * i - p["v"] * w - load) / p["M"],
+            w,
+        ]
+
+    s = np.array([0.0, 0.0, np.deg2rad(theta0_deg)])
+    out = [s]
+    for k in range(len(V) - 1):
+        sol = solve_ivp(rhs, (0.0, dt), s, method="Radau", rtol=1e-12, atol=1e-14, args=(V[k],))
+        s = sol.y[:, -1]
+        out.append(s)
+    out = np.array(out)
+    return {"current_A": out[:, 0], "theta_deg": np.rad2deg(out[:, 2])}
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 1000.0])
+def test_exponential_integrator_matches_fine_reference(rate_hz):
+    V = _voltage(rate_hz, duration_s=1.0 if rate_hz == 100 else 0.3)
+    dt = 1.0 / rate_hz
+    sim = simulate_motor(P, V, dt, theta0_deg=5.0)
+    ref = _reference(P, V, dt, 5.0)
+    assert np.max(np.abs(np.asarray(sim["theta_deg"]) - ref["theta_deg"])) < 1e-7
+    assert np.max(np.abs(np.asarray(sim["current_A"]) - ref["current_A"])) < 1e-8
+
+
+def test_load_torque_converges_at_second_order():
+    """ETD2RK with a state-dependent load torque: error falls ~4x per halved sub-step."""
+    rate, k_load = 200.0, 0.05
+
+    def tau(s, params):  # a stiffening spring on the pinion angle (N*m)
+        return k_load * s[2] * (1.0 + 0.1 * s[2] ** 2)
+
+    V = _voltage(rate, duration_s=0.5)
+    ref = _reference(P, V, 1 / rate, 0.0, tau=lambda s: tau(s, None))
+    errors = []
+    for sub in (2e-3, 1e-3, 5e-4, 2.5e-4):
+        integ = Integrator(max_substep_s=sub)
+        sim = simulate_motor(P, V, 1 / rate, integrator=integ, load_torque=tau)
+        errors.append(np.max(np.abs(np.asarray(sim["theta_deg"]) - ref["theta_deg"])))
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert errors[-1] < 1e-4
+    assert np.all(orders[1:] > 1.8), orders  # the coarsest pair is pre-asymptotic
+
+
+def test_seed_heun_at_10ms_is_flagged_unstable_and_diverges():
+    assert heun_amplification(P, 0.01) > 1.0
+    V = _voltage(100.0, duration_s=1.0)
+    with pytest.warns(NumericalWarning, match="unstable"):
+        heun = simulate_motor(P, V, 0.01, integrator=SEED_HEUN)
+    exact = simulate_motor(P, V, 0.01)
+    assert np.max(np.abs(np.asarray(exact["current_A"]))) < 10.0
+    h = np.asarray(heun["current_A"])
+    assert not np.all(np.isfinite(h)) or np.max(np.abs(h)) > 1e6
+
+
+def test_heun_is_stable_and_second_order_at_a_small_step():
+    assert heun_amplification(P, 2.5e-4) < 1.0
+    V = _voltage(100.0, duration_s=0.5)
+    ref = _reference(P, V, 0.01, 0.0)
+    err = []
+    for h in (5e-4, 2.5e-4):
+        sim = simulate_motor(P, V, 0.01, integrator=Integrator(method="heun", heun_step_s=h))
+        err.append(np.max(np.abs(np.asarray(sim["theta_deg"]) - ref["theta_deg"])))
+    assert 3.0 < err[0] / err[1] < 5.0
+
+
+def test_bell_landmarks_and_the_papers_units_slip():
+    c, a = 9.57e-4, 6.295e-4
+    F = clamp_force(jnp.array([c, c - a, c + a]), 3500.0, a, 2.82, c)
+    np.testing.assert_allclose(np.asarray(F), [3500.0, 1750.0, 1750.0], rtol=1e-12)
+    x = jnp.linspace(-8e-4, 9e-4, 50)
+    flat = clamp_force(x, 3500.0, a, 2.820e-4, c)  # the paper's printed "b = 2.820e-4 m"
+    assert np.max(np.abs(np.asarray(flat) - 1750.0)) < 5.0
+    assert float(gap(0.0, 3.8e-9, 1.5e-6, -8.4e-4)) == pytest.approx(-8.4e-4)
+
+
+def test_chain_gradient_is_finite_at_the_bell_centre():
+    import jax
+
+    V = _voltage(200.0, 0.5)
+
+    def loss(c):
+        out = simulate_chain(P.replace(c=c), V, 0.005)
+        return jnp.sum(out["force_N"])
+
+    g = jax.grad(loss)(jnp.asarray(9.57e-4))
+    assert np.isfinite(float(g))
