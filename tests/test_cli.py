@@ -1,0 +1,118 @@
+"""The command line: contract files, readable summaries, exit code 2 on bad input."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from ewb_ident.cli import app
+
+DATA = Path(__file__).parents[1] / "datasets"
+runner = CliRunner()
+
+
+def test_help_explains_every_command():
+    out = runner.invoke(app, ["--help"])
+    assert out.exit_code == 0
+    for command in ("fit", "simulate"):
+        assert command in out.output
+        sub = runner.invoke(app, [command, "--help"])
+        assert sub.exit_code == 0 and "Usage" in sub.output
+
+
+def test_version_answers_fast_without_jax():
+    code = "import sys, ewb_ident.cli as c; print('jax' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"  # the CLI module imports no JAX before a command
+    assert "ewb-ident" in runner.invoke(app, ["--version"]).output
+
+
+def test_fit_writes_the_contract_and_a_summary(tmp_path):
+    out = runner.invoke(app, ["fit", str(DATA / "staircase_200hz.csv"), "--out", str(tmp_path)])
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert {"params", "stderr", "metrics", "converged"} <= set(doc)
+    assert doc["converged"] is True
+    assert "force_N" in doc["metrics"] and "seed %" in out.output and "NRMSE" in out.output
+
+
+def test_stage_and_fixed_options(tmp_path):
+    args = ["fit", str(DATA / "staircase_200hz.csv"), "--out", str(tmp_path), "--stage"]
+    out = runner.invoke(app, [*args, "force", "--free", "a,c", "--fix", "b=2.7,F_rt=3630"])
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["free"] == ["a", "c"] and doc["params"]["b"] == 2.7
+
+
+def _bad_trace(tmp_path: Path) -> Path:
+    src = (DATA / "staircase_200hz.csv").read_text().splitlines()
+    src[10], src[11] = src[11], src[10]  # rows 10 and 11 swapped: time goes backwards
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(src) + "\n")
+    return bad
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--stage", "brake"], "unknown stage 'brake'"),
+        (["--free", "mu", "--stage", "force"], "parameter 'mu' is not fitted by stage 'force'"),
+        (["--fix", "b"], "--fix takes NAME=VALUE"),
+        (["--integrator", "euler"], "--integrator must be exponential or heun"),
+    ],
+)
+def test_bad_options_exit_2_and_write_nothing(tmp_path, args, message):
+    out_dir = tmp_path / "out"
+    out = runner.invoke(
+        app, ["fit", str(DATA / "staircase_200hz.csv"), "--out", str(out_dir), *args]
+    )
+    assert out.exit_code == 2
+    assert message in out.output
+    assert not (out_dir / "fit.json").exists()
+
+
+def test_bad_trace_gives_one_line_exit_2_and_no_output(tmp_path):
+    out_dir = tmp_path / "out"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ewb_ident",
+            "fit",
+            str(_bad_trace(tmp_path)),
+            "--out",
+            str(out_dir),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr
+    assert "bad.csv: column 'time_s', row 11" in lines[0]
+    assert not out_dir.exists() or not any(out_dir.iterdir())
+
+
+def test_missing_file_is_a_clear_error(tmp_path):
+    out = runner.invoke(app, ["fit", str(tmp_path / "nope.csv"), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 2 and "nope.csv" in out.output
+
+
+def test_simulate_writes_trace_and_truth_that_fit_reads(tmp_path):
+    target = tmp_path / "syn.csv"
+    out = runner.invoke(app, ["simulate", str(target), "--profile", "position", "--rate", "500"])
+    assert out.exit_code == 0, out.output
+    truth = json.loads((tmp_path / "syn.truth.json").read_text())
+    assert truth["sample_rate_hz"] == 500.0 and truth["params"]["b"] == 2.82
+    again = tmp_path / "again.csv"
+    runner.invoke(app, ["simulate", str(again), "--profile", "position", "--rate", "500"])
+    assert target.read_text() == again.read_text()  # same seed, same numbers
+
+
+def test_simulate_refuses_unknown_effect(tmp_path):
+    out = runner.invoke(app, ["simulate", str(tmp_path / "x.csv"), "--effect", "gremlins"])
+    assert out.exit_code == 2 and "unknown effect 'gremlins'" in out.output
+    assert not (tmp_path / "x.csv").exists()
