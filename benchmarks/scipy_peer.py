@@ -41,6 +41,10 @@ LOG = {"R", "L", "kb", "kT", "M", "v", "F_rt", "a", "b"}
 AFFINE_SCALE = {"p2": 1e-10, "p1": 1e-7, "p0": 1e-5, "c": 1e-4, "theta0_deg": 1.0}
 
 
+#: The parameters ewb-ident varies by default on a trace with every channel recorded.
+FREE = ["R", "L", "kb", "M", "v", "theta0_deg", "p2", "p1", "p0", "F_rt", "a", "b", "c", "mu"]
+
+
 def to_physical(name, u):
     if name in LOG:
         return NOMINAL[name] * np.exp(u)
@@ -118,7 +122,7 @@ def main(path: str) -> None:
     chans = [c for c in ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A") if c in df]
     measured = {c: df[c].to_numpy() for c in chans}
     sigma = {c: np.std(np.diff(measured[c], 2)) / np.sqrt(6) for c in chans}
-    free = ["R", "kb", "M", "v", "theta0_deg", "p2", "p1", "p0", "a", "b", "c", "mu"]
+    free = FREE
     start = {"theta0_deg": float(measured["theta_deg"][0])}
     p, res = fit(t, df["voltage_V"].to_numpy(), measured, sigma, free, start)
     print(json.dumps({"params": {n: p[n] for n in free}, "nfev": res.nfev, "status": res.status}))

@@ -728,7 +728,8 @@ def _uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> tuple:
     scale = np.linalg.norm(J, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     Js = J / scale
-    _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+    # SVD of the small triangular factor: the same singular values as Js, far cheaper.
+    _, s, Vt = np.linalg.svd(np.linalg.qr(Js, mode="r"))
     cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     keep = s > s[0] * 1e-12
     inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
