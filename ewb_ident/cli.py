@@ -198,6 +198,135 @@ def simulate(
     typer.echo(f"wrote {out} ({trace.n} samples at {trace.sample_rate_hz:g} Hz) and {truth_path}")
 
 
+@app.command()
+def sample(
+    traces: Traces,
+    out: OutDir,
+    stage: Annotated[
+        str,
+        typer.Option(
+            help="chain (from voltage alone), stages (every teacher-forced stage the traces "
+            "serve), or teacher-forced stages, e.g. 'force,torque'."
+        ),
+    ] = "chain",
+    free: Annotated[
+        str | None, typer.Option(help="Parameters to sample, e.g. 'a,b,c,mu' (default: per stage).")
+    ] = None,
+    per_trace: Annotated[
+        str | None, typer.Option(help="Free parameters sampled per trace, e.g. 'c,p0'.")
+    ] = None,
+    fix: Annotated[
+        str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
+    ] = None,
+    priors: Annotated[
+        Path | None,
+        typer.Option(help="TOML file of priors overriding the defaults (ewb_ident/priors.toml)."),
+    ] = None,
+    noise: Annotated[
+        str, typer.Option(help="auto (AR(1) where the residuals are correlated), white or ar1.")
+    ] = "auto",
+    steps: Annotated[int, typer.Option(help="Steps per ensemble.")] = 2000,
+    max_steps: Annotated[
+        int | None,
+        typer.Option(help="Extend the run until converged or this many steps (default 10x)."),
+    ] = None,
+    walkers: Annotated[
+        int | None, typer.Option(help="Walkers per ensemble, even (default max(32, 4 x dim)).")
+    ] = None,
+    ensembles: Annotated[int, typer.Option(help="Independent ensembles (>= 2).")] = 2,
+    min_ess: Annotated[float, typer.Option(help="ESS every parameter needs.")] = 400.0,
+    hdi_prob: Annotated[float, typer.Option(help="Probability of the HDIs.")] = 0.9,
+    draws: Annotated[
+        int, typer.Option(help="Draws stored in posterior.nc with predictive and log-lik.")
+    ] = 1000,
+    seed: Annotated[int, typer.Option(help="Seed of everything random.")] = 0,
+    integrator: Annotated[
+        str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
+    ] = "exponential",
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Posterior by MCMC (emcee) from the least-squares fit; writes OUT/summary.json,
+    OUT/posterior.nc (ArviZ) and OUT/pairs.png, and prints a summary."""
+    import sys
+    import time
+
+    from .outputs import atomic_write, json_text
+    from .posterior import SampleError
+    from .posterior import sample as run_sample
+    from .priors import PriorError
+    from .report import posterior_summary
+    from .simulate import EXPONENTIAL, SEED_HEUN
+
+    if integrator not in ("exponential", "heun"):
+        _fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    stages = stage if stage in ("chain", "stages") else tuple(_names(stage) or ())
+    if isinstance(stages, tuple) and len(stages) == 1:
+        stages = stages[0]
+    bar = None
+    if not no_progress and sys.stderr.isatty():
+        from rich.console import Console
+        from rich.progress import Progress
+
+        bar = Progress(console=Console(stderr=True), transient=True)
+    task = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal task
+        if task is None:
+            task = bar.add_task("sampling", total=total)
+        bar.update(task, completed=done, total=total)
+
+    t0 = time.perf_counter()
+    try:
+        trs = _read(
+            traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check
+        )
+        if bar is not None:
+            bar.start()
+        result = run_sample(
+            trs,
+            stage=stages,
+            free=_names(free),
+            per_trace=_names(per_trace),
+            fixed=_assignments(fix, "--fix"),
+            priors=priors,
+            noise_model=noise,
+            n_walkers=walkers,
+            n_steps=steps,
+            max_steps=max_steps,
+            n_ensembles=ensembles,
+            min_ess=min_ess,
+            hdi_prob=hdi_prob,
+            max_draws=draws,
+            seed=seed,
+            integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+            progress=None if bar is None else progress,
+        )
+    except (*_bad_input_errors(), SampleError, PriorError) as err:
+        _fail(str(err))
+    finally:
+        if bar is not None:
+            bar.stop()
+    text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
+    idata, fig = result.to_inference_data(), result.pair_plot()
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(
+        [
+            (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+            (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp))),
+            (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+        ]
+    )
+    typer.echo(posterior_summary(result))
+    typer.echo(
+        f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {out / 'pairs.png'} "
+        f"({time.perf_counter() - t0:.1f} s)"
+    )
+
+
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,

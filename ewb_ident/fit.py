@@ -169,18 +169,9 @@ def _solve(problem: _Problem, u0, data, rtol, atol, max_steps):
 
 
 @eqx.filter_jit
-def _jacobian(problem: _Problem, u, data):
-    return jax.jacfwd(problem)(u, data)
-
-
-@eqx.filter_jit
-def _residuals(problem: _Problem, u, data):
-    return problem(u, data)
-
-
-@eqx.filter_jit
-def _predictions(problem: _Problem, u, data):
-    return problem.predict(u, data)
+def _evaluate(problem: _Problem, u, data):
+    """Weighted residuals, predictions and the Jacobian at ``u``, in one compiled call."""
+    return problem(u, data), problem.predict(u, data), jax.jacfwd(problem)(u, data)
 
 
 @eqx.filter_jit
@@ -589,7 +580,7 @@ def fit(
     sol = _solve(problem, u0, data, rtol, atol, max_steps)
     results = [sol.result]
     steps = int(sol.stats["num_steps"])
-    r = np.asarray(_residuals(problem, sol.value, data))
+    r = np.asarray(_evaluate(problem, sol.value, data)[0])
     if np.all(np.isfinite(r)):
         sigma = _residual_sigma(r, channels, traces, sigma)
         data = data_with(sigma)
@@ -597,7 +588,8 @@ def fit(
         results.append(sol.result)
         steps += int(sol.stats["num_steps"])
     u = sol.value
-    r = np.asarray(_residuals(problem, u, data))
+    r, predicted, J = _evaluate(problem, u, data)
+    r, J = np.asarray(r), np.asarray(J)
     ok = all(_is(res, optx.RESULTS.successful) for res in results) and bool(np.all(np.isfinite(r)))
     message = "successful" if ok else _message(results, r, max_steps)
     if not ok and stage == "chain" and not _staged:
@@ -621,18 +613,19 @@ def fit(
     # Uncertainty from the Jacobian at the optimum.
     names = shared + tuple(f"{n}[{k}]" for k in range(len(traces)) for n in pt)
     infos = [PARAMS[n] for n in shared] + [PARAMS[n] for _ in traces for n in pt]
-    J = np.asarray(_jacobian(problem, u, data))
     stderr, corr, cond, sd_u = _uncertainty(J, r, np.asarray(u), infos)
     stderr_d = dict(zip(names, stderr, strict=True))
     notes += _identifiability_notes(names, corr, cond, stderr_d, sd_u)
 
     preds = [
         {k: np.asarray(v) for k, v in p.items() if k in chs}
-        for p, chs in zip(_predictions(problem, u, data), channels, strict=True)
+        for p, chs in zip(predicted, channels, strict=True)
     ]
     params, theta0 = [], []
     for k, d in enumerate(tdata):
-        vals = problem.values(u, dict(fixed_vals) | {"theta0_deg": d["theta0_deg"]}, k)
+        vals = problem.values(
+            np.asarray(u), base.as_dict() | {"theta0_deg": float(d["theta0_deg"])}, k
+        )
         params.append(EWBParams(**{n: float(vals[n]) for n in MODEL_PARAMS}))
         theta0.append(float(vals["theta0_deg"]))
     if stage in ("force", "chain") and any(n in free_t for n in ("a", "b", "c")):

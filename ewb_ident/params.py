@@ -126,10 +126,11 @@ class ParamInfo:
 
     def to_physical(self, u: ArrayLike) -> jnp.ndarray:
         """Map the unconstrained coordinate ``u`` to the parameter value (SI)."""
+        xp = jnp if isinstance(u, jax.Array) else np  # plain numbers stay in NumPy
         if self.transform == "log":
-            return self.ref * jnp.exp(u)
+            return self.ref * xp.exp(u)
         if self.transform == "logit":
-            return self.lower + (self.upper - self.lower) / (1.0 + jnp.exp(-u))
+            return self.lower + (self.upper - self.lower) / (1.0 + xp.exp(-u))
         return self.ref + self.scale * u
 
     def to_unconstrained(self, p: ArrayLike) -> jnp.ndarray:
@@ -145,12 +146,13 @@ class ParamInfo:
 
     def dp_du(self, u: ArrayLike) -> jnp.ndarray:
         """Derivative of the parameter value with respect to ``u`` (for the delta method)."""
+        xp = jnp if isinstance(u, jax.Array) else np
         if self.transform == "log":
-            return self.ref * jnp.exp(u)
+            return self.ref * xp.exp(u)
         if self.transform == "logit":
-            s = 1.0 / (1.0 + jnp.exp(-u))
+            s = 1.0 / (1.0 + xp.exp(-u))
             return (self.upper - self.lower) * s * (1.0 - s)
-        return jnp.asarray(self.scale)
+        return xp.asarray(self.scale)
 
     def inside(self, p: float) -> bool:
         """Whether ``p`` lies strictly inside the parameter's bounds."""

@@ -52,3 +52,40 @@ def fit_summary(result: FitResult) -> str:
         lines.append("")
         lines += [f"  warning: {w}" for w in result.warnings]
     return "\n".join(lines)
+
+
+def posterior_summary(result) -> str:
+    """A short plain-text summary of a posterior (:class:`ewb_ident.posterior.PosteriorResult`):
+    intervals, diagnostics, the a-b-c-mu correlations, identifiability and warnings."""
+    d = result.diagnostics
+    pct = f"{100 * result.hdi_prob:g} %"
+    lines = [
+        f"posterior of {', '.join(result.trace_names)} (stage: {'+'.join(result.stages)}) - "
+        + ("converged" if result.converged else "NOT CONVERGED (see the warnings)"),
+        f"  {d['n_ensembles']} ensembles x {d['n_walkers']} walkers x {d['n_steps']} steps; "
+        f"burn-in {d['burn']}, thin {d['thin']}, tau up to {d['tau_max']:.0f} steps, "
+        f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance'])}",
+        "",
+        f"  {'param':<19}{'mean':>11}{'sd':>10}{pct + ' HDI':>24}{'ESS':>8}{'R-hat':>7}  unit",
+    ]
+    for name, s in result.stats.items():
+        hdi = f"[{_fmt(s['hdi_low'])}, {_fmt(s['hdi_high'])}]"
+        ess = "-" if s["ess"] is None else f"{s['ess']:.0f}"
+        rhat = "-" if s["r_hat"] is None else f"{s['r_hat']:.3f}"
+        src = "" if s["source"] == "posterior" else f"  ({s['source']})"
+        lines.append(
+            f"  {name:<19}{_fmt(s['mean']):>11}{_fmt(s['sd'], 2):>10}{hdi:>24}{ess:>8}{rhat:>7}"
+            f"  {s['unit']}{src}"
+        )
+    names, corr = result.correlation()
+    if len(names) > 1:
+        lines += ["", f"  {'posterior correlation':<22}" + "".join(f"{n:>8}" for n in names)]
+        for n, row in zip(names, corr, strict=True):
+            lines.append(f"  {n:<22}" + "".join(f"{v:>8.3f}" for v in row))
+    if result.identifiability:
+        lines += ["", "  identifiability:"]
+        lines += [f"  - {s['statement']}" for s in result.identifiability]
+    if result.warnings:
+        lines.append("")
+        lines += [f"  warning: {w}" for w in result.warnings]
+    return "\n".join(lines)

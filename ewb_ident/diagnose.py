@@ -1,0 +1,947 @@
+"""Diagnosis: locate a mismatch between model and recording, name the missing physics,
+add it to the model, refit, and show the fit improve.
+
+Steps (:func:`diagnose`)
+------------------------
+1. **Baseline.** Each stage is fitted teacher-forced from its measured input
+   (:func:`ewb_ident.fit.fit`), and the whole chain from the voltage.
+2. **Locate** (:mod:`ewb_ident.locate`). Each stage's residual is scored against its
+   noise floor, phase by phase, with a whiteness test; a stage with a flagged cell is
+   *located*. Nothing located: the verdict is ``none``.
+3. **Explain.** Every catalog mechanism (:mod:`ewb_ident.mechanisms`) that acts on a
+   located stage and that the trace's columns support is fitted teacher-forced at its
+   stage(s), with that stage's own parameters refitted. Evidence is the change of the
+   Bayesian information criterion against the same stages without it,
+   ``dBIC = N ln(RSS_1 / RSS_0) + dk ln N`` (Gaussian likelihood with the noise scale
+   profiled; ``RSS`` the sum of squared residuals over the noise floor, ``N`` residuals).
+   A mechanism is *supported* when
+
+   - ``dBIC <= -BIC_THRESHOLD`` (10: "very strong" evidence on the scale of Kass and
+     Raftery 1995, a Bayes factor above about 150),
+   - every physical parameter lies inside its plausibility bounds and more than three
+     standard errors from "no effect" (guard against explaining noise), and
+   - it removes at least ``MIN_EXPLAINED`` (half) of the excess of the residual over the
+     noise at its stages (guard against a catalog name absorbing part of some other
+     physics).
+
+   Forward selection: the supported mechanism with the lowest ``dBIC`` is added, the
+   remaining candidates are refitted on top of it, and so on while a stage is still
+   located (at most :data:`MAX_MECHANISMS`).
+4. **Unknown physics.** A stage still located afterwards gets a sparse generic
+   correction (:mod:`ewb_ident.mechanisms.correction`), reported as
+   ``unexplained_<stage>`` with the terms it depends on. With no catalog finding the
+   verdict is ``unexplained``.
+5. **Show it.** The whole chain is refitted with the selected mechanisms, one added at a
+   time, for metrics before and after each; words for each finding.
+
+Thresholds are statistical (noise-relative scores, significance, information criterion)
+and were set on rig settings other than those the accuracy study measures on.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from .fit import default_free
+from .fit import fit as fit_stage
+from .locate import (
+    PHASES,
+    STAGE_WORDS,
+    Mismatch,
+    StageCheck,
+    describe_signature,
+    phase_labels,
+    score_check,
+    signature,
+    stage_excess,
+    summary_text,
+)
+from .mechanisms import AbstractMechanism, variants
+from .mechanisms.base import fmt_pm
+from .mechanisms.correction import (
+    FEATURES,
+    GenericCorrection,
+    available_features,
+    forward_select,
+    signals,
+    with_signals,
+)
+from .mechanisms.fitting import (
+    AugFit,
+    AugProblem,
+    _jacobian,
+    _residuals,
+    _to_u,
+    fit_mechanisms,
+    make_data,
+)
+from .mechanisms.model import STAGE_OUTPUTS, n_substeps
+from .metrics import channel_metrics, noise_sigma
+from .params import PARAMS, EWBParams
+from .physics import clamp_force
+from .traces import CHANNELS, STAGE_COLUMNS, Trace
+
+#: A mechanism must lower the BIC by at least this much.
+BIC_THRESHOLD = 10.0
+#: ... and remove at least this fraction of the excess residual at its stages.
+MIN_EXPLAINED = 0.5
+#: Most catalog mechanisms selected for one trace.
+MAX_MECHANISMS = 3
+#: Most stages given a generic correction.
+MAX_CORRECTIONS = 2
+
+STAGE_ORDER: tuple[str, ...] = ("motor", "gap", "force", "torque")
+MAIN_CHANNEL: dict[str, str] = {
+    "motor": "theta_deg",
+    "gap": "x_m",
+    "force": "force_N",
+    "torque": "torque_Nm",
+}
+
+
+class DiagnoseError(ValueError):
+    """A trace that cannot be diagnosed (the message says why and what to do)."""
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One mechanism fitted as a candidate explanation, with its evidence."""
+
+    variant: str
+    effect: str
+    stages: tuple[str, ...]
+    round: int
+    delta_bic: float
+    delta_chi2: float
+    explained: float
+    p_value: float
+    params: dict[str, float]
+    stderr: dict[str, float | None]
+    rejected: str
+    selected: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "mechanism": self.variant,
+            "effect": self.effect,
+            "stages": list(self.stages),
+            "round": self.round,
+            "delta_bic": _num(self.delta_bic),
+            "delta_chi2": _num(self.delta_chi2),
+            "explained_fraction": _num(self.explained),
+            "lr_p_value": _num(self.p_value),
+            "params": self.params,
+            "stderr": {k: _num(v) for k, v in self.stderr.items()},
+            "selected": self.selected,
+            "rejected_because": self.rejected or None,
+        }
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One explanation of a mismatch: a catalog mechanism, or a generic correction."""
+
+    effect: str
+    variant: str
+    stage: str
+    explanation: str
+    params: dict[str, float]
+    stderr: dict[str, float | None]
+    units: dict[str, str]
+    evidence: dict[str, float]
+    metrics_before: dict[str, dict[str, float | None]]
+    metrics_after: dict[str, dict[str, float | None]]
+    phases: tuple[str, ...] = ()
+    depends_on: tuple[str, ...] = ()
+    catalog: bool = True
+
+    def to_json(self) -> dict[str, Any]:
+        out = {
+            "effect": self.effect,
+            "stage": self.stage,
+            "explanation": self.explanation,
+            "params": self.params,
+            "evidence": {k: _num(v) for k, v in self.evidence.items()},
+            "metrics_before": _metrics_json(self.metrics_before),
+            "metrics_after": _metrics_json(self.metrics_after),
+            "stderr": {k: _num(v) for k, v in self.stderr.items()},
+            "units": self.units,
+            "mechanism": self.variant,
+            "phases": list(self.phases),
+            "catalog": self.catalog,
+        }
+        if self.depends_on:
+            out["depends_on"] = list(self.depends_on)
+        return out
+
+
+@dataclass(frozen=True)
+class DiagnosisResult:
+    """The outcome of :func:`diagnose` (immutable).
+
+    Attributes
+    ----------
+    trace_name
+        The diagnosed trace.
+    verdict
+        ``"none"``, ``"found"`` or ``"unexplained"`` (see ``shared/CONTRACTS.md``).
+    mismatches
+        Flagged (stage, channel, phase) cells of the baseline, most severe first.
+    cells
+        Every scored cell of the baseline (flagged or not).
+    findings
+        Explanations, best supported first (catalog ones, then generic corrections).
+    candidates
+        Every mechanism fitted, with its evidence and why it was or was not selected.
+    baseline_metrics, augmented_metrics
+        Whole-chain metrics per channel, before and after the findings were added.
+    stage_metrics_before, stage_metrics_after
+        Teacher-forced metrics per stage and channel, before and after.
+    noise
+        Sensor-noise estimate per channel, in the channel's unit.
+    checks_before, checks_after
+        Residual checks per (stage, channel) before and after (for figures).
+    chain_before, chain_after
+        The whole chain's predictions before and after (for figures).
+    labels
+        Phase of each sample.
+    timings
+        Seconds spent per step.
+    """
+
+    trace_name: str
+    verdict: str
+    mismatches: tuple[Mismatch, ...]
+    cells: tuple[Mismatch, ...]
+    findings: tuple[Finding, ...]
+    candidates: tuple[Candidate, ...]
+    baseline_metrics: dict[str, dict[str, float | None]]
+    augmented_metrics: dict[str, dict[str, float | None]]
+    stage_metrics_before: dict[str, dict[str, dict[str, float | None]]]
+    stage_metrics_after: dict[str, dict[str, dict[str, float | None]]]
+    noise: dict[str, float]
+    checks_before: dict[tuple[str, str], StageCheck] = field(repr=False)
+    checks_after: dict[tuple[str, str], StageCheck] = field(repr=False)
+    chain_before: dict[str, np.ndarray] = field(repr=False)
+    chain_after: dict[str, np.ndarray] = field(repr=False)
+    labels: np.ndarray = field(repr=False)
+    trace: Trace = field(repr=False)
+    timings: dict[str, float] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        """The contract ``diagnosis.json`` document (plain JSON, no NaN)."""
+        return {
+            "verdict": self.verdict,
+            "mismatches": [m.to_json() for m in self.mismatches],
+            "findings": [f.to_json() for f in self.findings],
+            "baseline": {
+                "metrics": _metrics_json(self.baseline_metrics),
+                "stage_metrics": {
+                    s: _metrics_json(m) for s, m in self.stage_metrics_before.items()
+                },
+            },
+            "augmented": {
+                "metrics": _metrics_json(self.augmented_metrics),
+                "stage_metrics": {s: _metrics_json(m) for s, m in self.stage_metrics_after.items()},
+                "mechanisms": [f.effect for f in self.findings],
+            },
+            "trace": self.trace_name,
+            "noise_sigma": self.noise,
+            "candidates": [c.to_json() for c in self.candidates],
+            "cells": [m.to_json() | {"flagged": m.flagged} for m in self.cells],
+            "thresholds": {
+                "score_min": _locate_const("SCORE_MIN"),
+                "score_structured": _locate_const("SCORE_STRUCTURED"),
+                "z_min": _locate_const("Z_MIN"),
+                "bic_threshold": BIC_THRESHOLD,
+                "min_explained_fraction": MIN_EXPLAINED,
+                "rule": (
+                    "a stage is located when a phase's residual RMS over the noise floor is "
+                    ">= score_min with chi-square excess z >= z_min, or its lag-1 "
+                    "autocorrelation is significant (rho sqrt(n) >= z_min) with score >= "
+                    "score_structured; a mechanism is reported when dBIC <= -bic_threshold, "
+                    "its parameters are plausible and > 3 standard errors from no effect, "
+                    "and it removes >= min_explained_fraction of the excess residual"
+                ),
+            },
+            "notes": list(self.notes),
+            "timings_s": self.timings,
+        }
+
+    def summary(self) -> str:
+        """A short plain-language summary (for the terminal)."""
+        lines = [f"diagnosis of {self.trace_name}: {self.verdict}"]
+        if self.verdict == "none":
+            lines.append("  every stage fits to the sensor noise; no missing physics is located.")
+        if self.mismatches:
+            lines.append("  where the model misses (most severe first):")
+            for m in self.mismatches[:5]:
+                lines.append(
+                    f"   - {m.stage} stage, {m.phase}, {m.channel}: {m.score:.1f}x the noise"
+                )
+        for f in self.findings:
+            tag = "" if f.catalog else " (not in the catalog)"
+            lines.append(f"  {f.effect}{tag}: {f.explanation}")
+        if self.verdict != "none":
+            lines.append("  whole chain, NRMSE % before -> after:")
+            for ch, m in self.baseline_metrics.items():
+                a = self.augmented_metrics.get(ch, {})
+                lines.append(f"   - {ch}: {_pct(m.get('nrmse_pct'))} -> {_pct(a.get('nrmse_pct'))}")
+        for note in self.notes:
+            lines.append(f"  note: {note}")
+        return "\n".join(lines)
+
+
+def _locate_const(name: str) -> float:
+    from . import locate
+
+    return float(getattr(locate, name))
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def _num(v: Any) -> Any:
+    if v is None:
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _metrics_json(m: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    return {ch: {k: _num(v) for k, v in mm.items()} for ch, mm in m.items()}
+
+
+# ----------------------------------------------------------------------------- session
+
+
+def _floor(y: np.ndarray) -> float:
+    return 1e-6 * float(np.max(y) - np.min(y)) + 1e-12
+
+
+def _order(stages) -> tuple[str, ...]:
+    if tuple(stages) == ("chain",):
+        return ("chain",)
+    return tuple(s for s in STAGE_ORDER if s in stages)
+
+
+def _key(stages, mechs) -> tuple:
+    return (_order(stages), tuple(m.variant + repr(m.static_config()) for m in mechs))
+
+
+class _Session:
+    """The trace, its noise floors and data, and a cache of fits."""
+
+    def __init__(self, trace: Trace):
+        self.trace = trace
+        self.cols = tuple(c for c in trace.columns if c != "time_s")
+        self.stages = tuple(s for s in STAGE_ORDER if all(trace.has(c) for c in STAGE_COLUMNS[s]))
+        if not self.stages:
+            raise DiagnoseError(
+                f"{trace.label}: no stage of the chain can be checked: it needs at least "
+                "one input-output pair (voltage_V and theta_deg, theta_deg and x_m, x_m and "
+                "force_N, or force_N and torque_Nm); record these channels"
+            )
+        self.noise = {
+            ch: max(noise_sigma(trace[ch]), _floor(trace[ch])) for ch in CHANNELS if trace.has(ch)
+        }
+        self.labels = phase_labels(trace)
+        self.cache: dict[tuple, AugFit] = {}
+        self.ctx = self._facts()
+
+    def _facts(self) -> dict[str, Any]:
+        tr = self.trace
+        ctx: dict[str, Any] = {"dt": tr.dt}
+        if tr.has("force_N"):
+            ctx["force_max_N"] = float(np.max(tr["force_N"]))
+        if tr.has("current_A"):
+            ctx["current_peak_A"] = float(np.max(np.abs(tr["current_A"])))
+        if tr.has("disc_speed_rad_s"):
+            w = tr["disc_speed_rad_s"]
+            contact = self.labels != "gapping"
+            wc = w[contact] if np.sum(contact) > 2 else w
+            ref = float(np.mean(wc))
+            ctx["omega_ref"] = ref if abs(ref) > 1e-6 else 1.0
+            ctx["disc_speed_range"] = (float(np.min(wc)), float(np.max(wc)))
+            ctx["disc_speed_span"] = (
+                float(np.max(wc) - np.min(wc)) / abs(ctx["omega_ref"]) if ref else 0.0
+            )
+            if tr.has("torque_Nm"):
+                ctx["energy_total_J"] = float(np.sum(np.abs(tr["torque_Nm"] * w)) * tr.dt)
+        return ctx
+
+    # -- baseline
+
+    def baseline(self) -> None:
+        tr = self.trace
+        vals = EWBParams().as_dict()
+        vals["theta0_deg"] = float(np.median(tr["theta_deg"][:5])) if tr.has("theta_deg") else 0.0
+        self.free: dict[str, tuple[str, ...]] = {}
+        self.base_messages: list[str] = []
+        for s in self.stages:
+            res = fit_stage(tr, stage=s)
+            free = default_free(s, [tr])
+            self.free[s] = tuple(free)
+            for name in free:
+                vals[name] = res.values[name]
+            if not res.converged:
+                self.base_messages.append(f"the baseline {s}-stage fit: {res.message}")
+        self.values = vals
+        kT, R = vals["kT"], vals["R"]
+        self.ctx |= {"kT": kT, "R": R}
+        if tr.has("voltage_V"):
+            self.ctx["stall_torque_Nm"] = kT * float(np.max(np.abs(tr["voltage_V"]))) / R
+        self.sigma_tf = self._stage_sigma(vals)
+        xp = 2.0 * self.noise.get("x_m", 0.0)
+        data = make_data(
+            tr, self.sigma_tf, vals, x_play_m=xp, omega_ref=self.ctx.get("omega_ref", 1.0)
+        )
+        self.data = with_signals(data, tr)
+        self.base_fits = {s: self.fit((s,), ()) for s in self.stages}
+        for s, f in self.base_fits.items():
+            for name in self.free[s]:
+                self.values[name] = f.values[name]
+
+    def _stage_sigma(self, v: Mapping[str, float]) -> dict[str, np.ndarray]:
+        """Noise floor per sample of each teacher-forced stage's output."""
+        tr, nz = self.trace, self.noise
+        out: dict[str, np.ndarray] = {}
+        n = tr.n
+        for s in self.stages:
+            if s == "motor":
+                for ch in ("theta_deg", "current_A"):
+                    if tr.has(ch):
+                        out[ch] = np.full(n, nz[ch])
+            elif s == "gap":
+                th = tr["theta_deg"]
+                g = 2 * v["p2"] * th + v["p1"]
+                out["x_m"] = np.sqrt(nz["x_m"] ** 2 + (g * nz["theta_deg"]) ** 2)
+            elif s == "force":
+                x = tr["x_m"]
+                hx = 1e-3 * abs(v["a"])
+                f = lambda z: np.asarray(clamp_force(z, v["F_rt"], v["a"], v["b"], v["c"]))  # noqa: E731
+                g = (f(x + hx) - f(x - hx)) / (2 * hx)
+                out["force_N"] = np.sqrt(nz["force_N"] ** 2 + (g * nz["x_m"]) ** 2)
+            elif s == "torque":
+                g = 2 * v["mu"] * tr.r_eff_m
+                out["torque_Nm"] = np.sqrt(nz["torque_Nm"] ** 2 + (g * nz["force_N"]) ** 2)
+        return out
+
+    # -- fits
+
+    def free_of(self, stages: Sequence[str]) -> tuple[str, ...]:
+        out: list[str] = []
+        for s in stages:
+            out += [n for n in self.free[s] if n not in out]
+        return tuple(out)
+
+    def channels_of(self, stages: Sequence[str]) -> tuple[str, ...]:
+        return tuple(c for s in stages for c in STAGE_OUTPUTS[s] if c in self.sigma_tf)
+
+    def fit(
+        self,
+        stages: Sequence[str],
+        mechs: Sequence[AbstractMechanism],
+        explore: Sequence[bool] | None = None,
+    ) -> AugFit:
+        stages = _order(stages)
+        key = _key(stages, mechs)
+        if key not in self.cache:
+            self.cache[key] = fit_mechanisms(
+                self.data,
+                stages,
+                self.free_of(stages),
+                tuple(mechs),
+                self.channels_of(stages),
+                start={n: self.values[n] for n in self.free_of(stages)},
+                ctx=self.ctx,
+                explore=explore,
+            )
+        return self.cache[key]
+
+    def check(self, stage: str, f: AugFit) -> list[StageCheck]:
+        out = []
+        for ch in STAGE_OUTPUTS[stage]:
+            if ch in f.predictions and ch in self.sigma_tf:
+                out.append(
+                    StageCheck(stage, ch, self.trace[ch], f.predictions[ch], self.sigma_tf[ch])
+                )
+        return out
+
+    def mechanism_stages(self, m: AbstractMechanism) -> tuple[str, ...]:
+        return tuple(s for s in m.stages if s in self.stages)
+
+
+# ----------------------------------------------------------------------------- evidence
+
+
+def _evidence(f1: AugFit, f0: AugFit) -> dict[str, float]:
+    n = f0.n
+    dk = f1.k - f0.k
+    rss0, rss1 = max(f0.rss, 1e-300), max(f1.rss, 1e-300)
+    dbic = n * float(np.log(rss1 / rss0)) + dk * float(np.log(n))
+    dchi2 = rss0 - rss1
+    excess = rss0 - n
+    explained = dchi2 / excess if excess > 0 else 0.0
+    p = float(stats.chi2.sf(max(dchi2, 0.0), max(dk, 1)))
+    return {
+        "delta_bic": dbic,
+        "delta_chi2": dchi2,
+        "explained_fraction": explained,
+        "lr_p_value": p,
+        "score_before": float(np.sqrt(rss0 / n)),
+        "score_after": float(np.sqrt(rss1 / n)),
+        "n_residuals": float(n),
+        "n_params_added": float(dk),
+    }
+
+
+def _fitted(f: AugFit, variant: str) -> AbstractMechanism:
+    return next(m for m in f.mechanisms if m.variant == variant)
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def diagnose(
+    trace: Trace,
+    *,
+    bic_threshold: float = BIC_THRESHOLD,
+    max_mechanisms: int = MAX_MECHANISMS,
+    catalog: Sequence[str] | None = None,
+) -> DiagnosisResult:
+    """Locate, explain and correct the mismatch between the model and one trace.
+
+    Parameters
+    ----------
+    trace
+        One rig trace (needs at least one input-output pair of a stage; the whole chain
+        needs ``voltage_V``).
+    bic_threshold
+        Evidence a mechanism needs: ``dBIC <= -bic_threshold`` (default 10).
+    max_mechanisms
+        Most catalog mechanisms selected.
+    catalog
+        Catalog ids to consider (default: all).
+
+    Returns
+    -------
+    DiagnosisResult
+        Its :meth:`~DiagnosisResult.to_json` is the ``diagnosis.json`` contract.
+
+    Raises
+    ------
+    DiagnoseError
+        The trace lacks the columns any stage needs, or ``catalog`` names unknown ids.
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    pool = variants()
+    if catalog is not None:
+        known = {m.id for m in pool}
+        bad = sorted(set(catalog) - known)
+        if bad:
+            raise DiagnoseError(f"unknown catalog id(s) {bad}; the catalog is {sorted(known)}")
+        pool = [m for m in pool if m.id in set(catalog)]
+
+    ses = _Session(trace)
+    ses.baseline()
+    timings["baseline_stages"] = time.perf_counter() - t_start
+
+    # 2. Locate.
+    checks_before = {
+        (c.stage, c.channel): c for s in ses.stages for c in ses.check(s, ses.base_fits[s])
+    }
+    cells = [m for c in checks_before.values() for m in score_check(c, ses.labels, trace.time_s)]
+    cells = [_with_summary(m, checks_before, trace, ses.labels) for m in cells]
+    flagged_cells = sorted((m for m in cells if m.flagged), key=lambda m: -m.score)
+    located = {m.stage for m in flagged_cells}
+    timings["locate"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # Chain baseline (from voltage).
+    chain_ok = trace.has("voltage_V") and trace.has("theta_deg")
+    chain_fits: list[AugFit] = []
+    chain_free: tuple[str, ...] = ()
+    if chain_ok:
+        base_chain = fit_stage(trace, stage="chain")
+        chain_free = tuple(default_free("chain", [trace]))
+        chain_sigma = {ch: ses.noise[ch] for ch in CHANNELS if trace.has(ch)}
+        chain_data = with_signals(
+            make_data(
+                trace,
+                chain_sigma,
+                base_chain.values,
+                x_play_m=0.0,
+                omega_ref=ses.ctx.get("omega_ref", 1.0),
+            ),
+            trace,
+        )
+        chain_fits.append(
+            fit_mechanisms(chain_data, ("chain",), chain_free, (), tuple(chain_sigma))
+        )
+    timings["baseline_chain"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # 3. Explain: forward selection over the catalog.
+    selected: list[AbstractMechanism] = []
+    candidates: list[Candidate] = []
+    evidence: dict[str, dict[str, float]] = {}
+    current = dict(ses.base_fits)  # stage -> latest fit covering it
+    still = set(located)
+    for rnd in range(1, max_mechanisms + 1):
+        if not still:
+            break
+        done = {m.variant for m in selected}
+        results = []
+        for tmpl in pool:
+            if tmpl.variant in done:
+                continue
+            mst = ses.mechanism_stages(tmpl)
+            if not mst or not set(mst) & still:
+                continue
+            if tmpl.applicable(ses.cols, ses.ctx):
+                continue
+            T = _closure(mst, selected, ses)
+            ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
+            f0 = ses.fit(T, ms, explore=[False] * len(ms))
+            f1 = ses.fit(T, ms + [tmpl], explore=[False] * len(ms) + [True])
+            ev = _evidence(f1, f0)
+            mech = _fitted(f1, tmpl.variant)
+            se = f1.mechanism_stderr(mech)
+            reason = mech.plausible(mech.values(), se)
+            if not reason and ev["delta_bic"] > -bic_threshold:
+                reason = f"dBIC {ev['delta_bic']:.1f} > -{bic_threshold:g}"
+            if not reason and ev["explained_fraction"] < MIN_EXPLAINED:
+                reason = (
+                    f"explains only {100 * ev['explained_fraction']:.0f} % of the excess "
+                    "residual at its stages"
+                )
+            if not reason and not f1.converged:
+                reason = "the fit did not converge"
+            cand = Candidate(
+                variant=tmpl.variant,
+                effect=tmpl.id,
+                stages=T,
+                round=rnd,
+                delta_bic=ev["delta_bic"],
+                delta_chi2=ev["delta_chi2"],
+                explained=ev["explained_fraction"],
+                p_value=ev["lr_p_value"],
+                params=mech.values(),
+                stderr=se,
+                rejected=reason,
+            )
+            results.append((cand, f1, ev, mech))
+        ok = [r for r in results if not r[0].rejected]
+        best = min(ok, key=lambda r: r[0].delta_bic) if ok else None
+        for r in results:
+            sel = best is not None and r[0] is best[0]
+            candidates.append(Candidate(**{**r[0].__dict__, "selected": sel}) if sel else r[0])
+        if best is None:
+            break
+        cand, f1, ev, mech = best
+        selected.append(mech)
+        evidence[mech.variant] = ev
+        for s in f1.stages:
+            current[s] = f1
+        for n in ses.free_of(f1.stages):
+            ses.values[n] = f1.values[n]
+        still = set()
+        for s in ses.stages:
+            for c in ses.check(s, current[s]):
+                if any(m.flagged for m in score_check(c, ses.labels, trace.time_s)):
+                    still.add(s)
+    timings["explain"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # 4. Unknown physics at stages still located.
+    corrections: list[tuple[str, AugFit, dict[str, float], Any]] = []
+    remaining = _ranked_stages(ses, current, still)
+    for s in remaining[:MAX_CORRECTIONS]:
+        res = _generic(ses, s, selected, current, bic_threshold)
+        if res is not None:
+            f_gen, ev, sel = res
+            corrections.append((s, f_gen, ev, sel))
+            for st in f_gen.stages:
+                current[st] = f_gen
+    timings["unknown"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # 5. The whole chain with the findings added one at a time.
+    added: list[AbstractMechanism] = list(selected) + [
+        _fitted(f, f"unexplained_{s}") for s, f, _, _ in corrections
+    ]
+    if chain_ok:
+        for k in range(1, len(added) + 1):
+            prev = chain_fits[-1]
+            mechs = [_mechanism_start(m, prev) for m in added[:k]]
+            f = fit_mechanisms(
+                chain_data,
+                ("chain",),
+                chain_free,
+                mechs,
+                tuple(chain_sigma),
+                start={n: prev.values[n] for n in chain_free},
+                explore=[False] * k,
+            )
+            chain_fits.append(f)
+    timings["chain"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # Results.
+    checks_after = {(c.stage, c.channel): c for s in ses.stages for c in ses.check(s, current[s])}
+
+    def metrics_of(f: AugFit | None) -> dict[str, dict[str, float | None]]:
+        if f is None:
+            return {}
+        return {ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items()}
+
+    stage_before = {
+        s: {
+            ch: channel_metrics(c.predicted, c.measured)
+            for (st, ch), c in checks_before.items()
+            if st == s
+        }
+        for s in ses.stages
+    }
+    stage_after = {
+        s: {
+            ch: channel_metrics(c.predicted, c.measured)
+            for (st, ch), c in checks_after.items()
+            if st == s
+        }
+        for s in ses.stages
+    }
+    findings: list[Finding] = []
+    for k, mech in enumerate(added):
+        before = metrics_of(chain_fits[k]) if chain_ok else stage_before.get(mech.stage, {})
+        after = metrics_of(chain_fits[k + 1]) if chain_ok else stage_after.get(mech.stage, {})
+        if isinstance(mech, GenericCorrection):
+            s, f_gen, ev, sel = corrections[k - len(selected)]
+            findings.append(
+                _generic_finding(ses, mech, f_gen, ev, sel, flagged_cells, before, after)
+            )
+        else:
+            fit_m = current[mech.stage] if mech.stage in current else None
+            se = _stderr_of(mech, fit_m, ses)
+            findings.append(
+                _finding(ses, mech, se, evidence[mech.variant], flagged_cells, before, after)
+            )
+
+    if not flagged_cells:
+        verdict = "none"
+    elif any(f.catalog for f in findings):
+        verdict = "found"
+    else:
+        verdict = "unexplained"
+    notes = list(ses.base_messages)
+    if verdict == "unexplained" and not corrections:
+        notes.append(
+            "a mismatch is located but neither a catalog mechanism nor the generic "
+            "correction explains it beyond the noise"
+        )
+    timings["total"] = time.perf_counter() - t_start
+    base_metrics = metrics_of(chain_fits[0]) if chain_ok else {}
+    aug_metrics = metrics_of(chain_fits[-1]) if chain_ok else {}
+    return DiagnosisResult(
+        trace_name=trace.name,
+        verdict=verdict,
+        mismatches=tuple(flagged_cells),
+        cells=tuple(cells),
+        findings=tuple(findings),
+        candidates=tuple(candidates),
+        baseline_metrics=base_metrics,
+        augmented_metrics=aug_metrics,
+        stage_metrics_before=stage_before,
+        stage_metrics_after=stage_after,
+        noise=dict(ses.noise),
+        checks_before=checks_before,
+        checks_after=checks_after,
+        chain_before=dict(chain_fits[0].predictions) if chain_ok else {},
+        chain_after=dict(chain_fits[-1].predictions) if chain_ok else {},
+        labels=ses.labels,
+        trace=trace,
+        timings=timings,
+        notes=tuple(notes),
+    )
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _closure(stages, selected, ses) -> tuple[str, ...]:
+    """``stages`` plus those of every selected mechanism that shares one with them."""
+    T = set(stages)
+    grew = True
+    while grew:
+        grew = False
+        for m in selected:
+            ms = set(ses.mechanism_stages(m))
+            if ms & T and not ms <= T:
+                T |= ms
+                grew = True
+    return _order(T)
+
+
+def _ranked_stages(ses: _Session, current, still) -> list[str]:
+    excess = {}
+    for s in still:
+        excess[s] = sum(stage_excess(c) for c in ses.check(s, current[s]))
+    return sorted(excess, key=lambda s: -excess[s])
+
+
+def _mechanism_start(m: AbstractMechanism, prev: AugFit) -> AbstractMechanism:
+    for pm in prev.mechanisms:
+        if pm.variant == m.variant:
+            return pm
+    return m
+
+
+def _stderr_of(mech: AbstractMechanism, f: AugFit | None, ses: _Session):
+    for fit_ in [f, *ses.cache.values()]:
+        if fit_ is None:
+            continue
+        for m in fit_.mechanisms:
+            if m.variant == mech.variant and np.allclose(
+                list(m.values().values()), list(mech.values().values())
+            ):
+                return fit_.mechanism_stderr(m)
+    return {i.name: None for i in mech.param_info()}
+
+
+def _with_summary(m: Mismatch, checks, trace, labels) -> Mismatch:
+    if not m.flagged:
+        return m
+    c = checks[(m.stage, m.channel)]
+    sig = signature(c, trace, labels)
+    notes = describe_signature(c, sig, m.phase)
+    return Mismatch(**{**m.__dict__, "summary": summary_text(m, notes), "signature": sig})
+
+
+def _phases_of(stage: str, flagged: Sequence[Mismatch], stages: Sequence[str]) -> tuple[str, ...]:
+    ph = {m.phase for m in flagged if m.stage in stages}
+    return tuple(p for p in PHASES if p in ph)
+
+
+def _metric_words(ch: str, before, after) -> str:
+    b = before.get(ch, {}).get("nrmse_pct")
+    a = after.get(ch, {}).get("nrmse_pct")
+    if b is None or a is None:
+        return ""
+    name = ch.split("_")[0]
+    return f"{name} NRMSE {b:.2f} % → {a:.2f} %"
+
+
+def _finding(ses, mech, se, ev, flagged, before, after) -> Finding:
+    vals = mech.values()
+    stages = ses.mechanism_stages(mech)
+    phases = _phases_of(mech.stage, flagged, stages)
+    where = f"{mech.stage} stage" + (f", {' and '.join(phases)}" if phases else "")
+    ch = mech.channels[0] if mech.hook == "sensor" else MAIN_CHANNEL[mech.stage]
+    words = _metric_words(ch, before, after)
+    text = (
+        f"{mech.observation(vals, ses.ctx)} ({where}): {mech.describe(vals, se, ses.ctx)}"
+        + (f"; {words}" if words else "")
+        + f", ΔBIC {ev['delta_bic']:.0f}"
+    )
+    return Finding(
+        effect=mech.id,
+        variant=mech.variant,
+        stage=mech.stage,
+        explanation=text,
+        params=vals,
+        stderr=se,
+        units={i.name: i.unit for i in mech.param_info()},
+        evidence=ev,
+        metrics_before=before,
+        metrics_after=after,
+        phases=phases,
+    )
+
+
+def _generic(ses: _Session, stage: str, selected, current, threshold):
+    """Fit the sparse generic correction at ``stage``; ``None`` when no term helps."""
+    sig = signals(ses.trace)
+    feats = available_features(stage, sig)
+    if not feats:
+        return None
+    T = _closure((stage,), selected, ses)
+    ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
+    f_cur = ses.fit(T, ms, explore=[False] * len(ms))
+    full = GenericCorrection(stage_name=stage, features=feats)
+    mechs = [*f_cur.mechanisms, full]
+    problem = AugProblem(
+        stages=T,
+        free=ses.free_of(T),
+        specs=tuple((type(m), m.static_config()) for m in mechs),
+        channels=ses.channels_of(T),
+        n_sub=n_substeps(float(ses.data["dt"]), mechs),
+    )
+    u = [float(PARAMS[n].to_unconstrained(f_cur.values[n])) for n in problem.free]
+    for m in mechs:
+        vals = m.values()
+        u += [_to_u(i, vals[i.name]) for i in m.param_info()]
+    u = jnp.asarray(np.asarray(u))
+    r = np.asarray(_residuals(problem, u, ses.data))
+    J = np.asarray(_jacobian(problem, u, ses.data))
+    m_terms = len(feats)
+    sel = forward_select(r, J[:, :-m_terms], J[:, -m_terms:], feats, threshold=threshold)
+    if not sel.features:
+        return None
+    gc = GenericCorrection(stage_name=stage, features=sel.features)
+    f_gen = ses.fit(T, [*f_cur.mechanisms, gc], explore=[False] * (len(ms) + 1))
+    ev = _evidence(f_gen, f_cur)
+    if ev["delta_bic"] > -threshold:
+        return None
+    return f_gen, ev, sel
+
+
+def _generic_finding(ses, mech, f_gen, ev, sel, flagged, before, after) -> Finding:
+    stage = mech.stage
+    se = f_gen.mechanism_stderr(mech)
+    vals = mech.values()
+    words = FEATURES[stage]
+    deps = []
+    for f in mech.features:
+        w = words[f]
+        if w not in deps:
+            deps.append(w)
+    phases = _phases_of(stage, flagged, (stage,))
+    where = f"{stage} stage" + (f", {' and '.join(phases)}" if phases else "")
+    ch = MAIN_CHANNEL[stage]
+    mw = _metric_words(ch, before, after)
+    terms = ", ".join(
+        f"{f} {fmt_pm(vals[f'c_{f}'], se.get(f'c_{f}'))} {i.unit}"
+        for f, i in zip(mech.features, mech.param_info(), strict=True)
+    )
+    kind = "load torque" if stage == "motor" else f"correction of {ch}"
+    text = (
+        f"the {STAGE_WORDS[stage]} misses something no catalog mechanism explains ({where}); "
+        f"a generic {kind} depending on {'; '.join(deps)} improves the fit ({terms})"
+        + (f"; {mw}" if mw else "")
+        + f", ΔBIC {ev['delta_bic']:.0f}. Physics not in the catalog: inspect before "
+        "modelling it."
+    )
+    return Finding(
+        effect=f"unexplained_{stage}",
+        variant=mech.variant,
+        stage=stage,
+        explanation=text,
+        params=vals,
+        stderr=se,
+        units={i.name: i.unit for i in mech.param_info()},
+        evidence=ev,
+        metrics_before=before,
+        metrics_after=after,
+        phases=phases,
+        depends_on=tuple(mech.features),
+        catalog=False,
+    )

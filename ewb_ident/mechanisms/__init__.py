@@ -1,0 +1,54 @@
+"""The catalog of brake mechanisms the seed model leaves out.
+
+One interface (:class:`~ewb_ident.mechanisms.base.AbstractMechanism`), one module per
+mechanism, and this registry. :data:`CATALOG` maps each catalog id of
+``shared/CONTRACTS.md`` to its class; :func:`variants` lists the instances a diagnosis
+tries (a sensor mechanism once per channel it can act on).
+"""
+
+from __future__ import annotations
+
+from .backlash import Backlash as Backlash
+from .base import HOOKS as HOOKS
+from .base import AbstractMechanism as AbstractMechanism
+from .current_limit import CurrentLimit as CurrentLimit
+from .force_hysteresis import ForceHysteresis as ForceHysteresis
+from .friction_fade import FrictionFade as FrictionFade
+from .friction_speed import FrictionSpeed as FrictionSpeed
+from .sensor_delay import SensorDelay as SensorDelay
+from .sensor_offset import SensorOffset as SensorOffset
+from .stiction import Stiction as Stiction
+from .wedge_load_torque import WedgeLoadTorque as WedgeLoadTorque
+
+#: Catalog id -> mechanism class.
+CATALOG: dict[str, type[AbstractMechanism]] = {
+    cls.id: cls
+    for cls in (
+        Backlash,
+        WedgeLoadTorque,
+        ForceHysteresis,
+        SensorDelay,
+        FrictionSpeed,
+        FrictionFade,
+        SensorOffset,
+        CurrentLimit,
+        Stiction,
+    )
+}
+
+#: Channels each sensor mechanism can act on.
+SENSOR_CHANNELS: dict[str, tuple[str, ...]] = {
+    "sensor_delay": ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A"),
+    "sensor_offset": ("force_N", "torque_Nm"),
+}
+
+
+def variants() -> list[AbstractMechanism]:
+    """Every mechanism instance a diagnosis can try, with default parameter values."""
+    out: list[AbstractMechanism] = []
+    for mid, cls in CATALOG.items():
+        if mid in SENSOR_CHANNELS:
+            out += [cls(channel=ch) for ch in SENSOR_CHANNELS[mid]]
+        else:
+            out.append(cls())
+    return out

@@ -1,0 +1,71 @@
+"""``current_limit``: the motor driver limits the current (motor stage).
+
+The driver clips the armature voltage so that the current stays within ``+-i_max``:
+``V_eff = clip(V, kb omega - R i_max, kb omega + R i_max)``. The logged ``voltage_V``
+is the command, so the seed model over-predicts the current, and the acceleration,
+whenever the command asks for more.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import jax.numpy as jnp
+from jax.typing import ArrayLike
+
+from ..params import EWBParams, ParamInfo
+from .base import AbstractMechanism, fmt_pm
+
+_INFO = (
+    ParamInfo(
+        "i_max_A",
+        "A",
+        "log",
+        2.0,
+        lower=0.05,
+        upper=200.0,
+        doc="current limit of the motor driver",
+    ),
+)
+
+
+class CurrentLimit(AbstractMechanism):
+    """A current-limiting driver: a state-dependent clip of the armature voltage."""
+
+    id: ClassVar[str] = "current_limit"
+    STAGE: ClassVar[str] = "motor"
+    hook: ClassVar[str] = "voltage"
+    physics: ClassVar[str] = "the motor driver limits the current, so motor torque saturates"
+
+    i_max_A: ArrayLike = 2.0
+
+    def param_info(self) -> tuple[ParamInfo, ...]:
+        return _INFO
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return ("theta_deg", "current_A")
+
+    def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
+        peak = float(ctx.get("current_peak_A", 4.0)) or 4.0
+        return [{"i_max_A": f * peak} for f in (0.4, 0.6, 0.8, 0.95)]
+
+    def voltage(self, V: jnp.ndarray, s: jnp.ndarray, p: EWBParams) -> jnp.ndarray:
+        lim = p.R * self.i_max_A
+        emf = p.kb * s[1]
+        return jnp.clip(V, emf - lim, emf + lim)
+
+    def observation(self, values, ctx) -> str:
+        return (
+            f"the motor current levels off at about {values['i_max_A']:.2f} A where the model "
+            "asks for more, and the motor accelerates more slowly"
+        )
+
+    def describe(self, values, stderr, ctx) -> str:
+        i, se = values["i_max_A"], stderr.get("i_max_A")
+        peak = float(ctx.get("current_peak_A", 0.0))
+        text = f"{self.physics}, i_max = {fmt_pm(i, se)} A"
+        if peak > 0:
+            text += f" (the largest recorded current is {peak:.2f} A)"
+        return text

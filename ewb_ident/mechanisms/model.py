@@ -1,0 +1,251 @@
+"""The chain with mechanisms plugged in: predictions of each stage and of the whole chain.
+
+:func:`predict` evaluates one teacher-forced stage (its input is the measured channel,
+corrected by any sensor mechanism on it) or the whole chain from the voltage, calling
+each mechanism at its hook (see :mod:`ewb_ident.mechanisms.base`). Without mechanisms
+it gives exactly the seed model of :mod:`ewb_ident.physics` / :mod:`ewb_ident.simulate`.
+
+The motor with mechanisms
+-------------------------
+:func:`motor_states` splits each sub-step (at most :data:`MAX_SUBSTEP_S`) into the
+exact linear flow of the armature and rotor (``exp(A h)``, as in
+:mod:`ewb_ident.simulate`) with the voltage the ``voltage`` hooks let through, followed
+by an implicit (backward Euler) step of the friction-like torques of the
+``motor_friction`` hooks: with ``omega_free`` the speed after the linear flow,
+
+    omega = 0                                        if |omega_free| <= h tau_stick / M
+    omega = omega_free - h tau_slip sign(omega_free) / M    otherwise,
+
+the time-stepping scheme of Moreau for set-valued friction. A stuck actuator therefore
+stays exactly still, with no stiff regularisation; the splitting is first order in
+``h``. The model clamping force a wedge load needs is ``F_bell(gap(theta))`` at the
+state's angle.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from ..params import EWBParams
+from ..physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
+from ..simulate import _motor_states, _mv, phi_matrices
+from .base import AbstractMechanism
+
+#: Longest sub-step of the motor integration with mechanisms, s.
+MAX_SUBSTEP_S = 5.0e-4
+
+#: Hooks that act inside the motor integration.
+MOTOR_HOOKS: tuple[str, ...] = ("voltage", "motor_friction", "load_torque")
+
+#: Output channel(s) of each teacher-forced stage.
+STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
+    "motor": ("theta_deg", "current_A"),
+    "gap": ("x_m",),
+    "force": ("force_N",),
+    "torque": ("torque_Nm",),
+}
+
+
+def n_substeps(dt: float, mechanisms: Sequence[AbstractMechanism]) -> int:
+    """Motor sub-steps per sample interval ``dt`` (s) for these mechanisms."""
+    if not any(m.hook in MOTOR_HOOKS for m in mechanisms):
+        return 1
+    return max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
+
+
+def motor_states(
+    p: EWBParams,
+    voltage_V: jnp.ndarray,
+    dt: jnp.ndarray,
+    theta0_deg: jnp.ndarray,
+    mechanisms: Sequence[AbstractMechanism],
+    n_sub: int,
+) -> jnp.ndarray:
+    """Motor states (i [A], omega [rad/s], theta [rad]) at the sample times, shape (n, 3).
+
+    Without motor mechanisms this is :func:`ewb_ident.simulate._motor_states` (exact).
+    """
+    volt = [m for m in mechanisms if m.hook == "voltage"]
+    fric = [m for m in mechanisms if m.hook == "motor_friction"]
+    load = [m for m in mechanisms if m.hook == "load_torque"]
+    if not volt and not fric and not load:
+        return _motor_states(p, voltage_V, dt, theta0_deg, 1, "exponential", None)
+    A, B_V, _ = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
+    h = dt / n_sub
+    E, P1, _ = phi_matrices(A, h)
+    g = _mv(P1, B_V)
+    s0 = jnp.zeros(3, dtype=A.dtype).at[2].set(theta0_deg / DEG_PER_RAD)
+
+    def force_of(theta_rad):
+        x = gap(theta_rad * DEG_PER_RAD, p.p2, p.p1, p.p0)
+        return clamp_force(x, p.F_rt, p.a, p.b, p.c)
+
+    def substep(s, V):
+        v_eff = V
+        for m in volt:
+            v_eff = m.voltage(v_eff, s, p)
+        s1 = _mv(E, s) + g * v_eff
+        if load:
+            tau = sum(m.load_torque(s, p, force_of(s[2])) for m in load)
+            s1 = s1.at[1].add(-h * tau / p.M).at[2].add(-0.5 * h * h * tau / p.M)
+        if fric:
+            force = force_of(s1[2])
+            slip = jnp.zeros_like(s1[1])
+            stick = jnp.zeros_like(s1[1])
+            for m in fric:
+                a, b = m.motor_friction(s1, p, force)
+                slip, stick = slip + a, stick + b
+            w = s1[1]
+            stuck = jnp.abs(w) <= h * stick / p.M
+            w_new = jnp.where(stuck, 0.0, w - h * slip / p.M * jnp.sign(w))
+            s1 = s1.at[1].set(w_new).at[2].add(0.5 * h * (w_new - w))
+        return s1
+
+    def sample(s, V):
+        def sub(c, _):
+            return substep(c, V), None
+
+        s_next = jax.lax.scan(sub, s, None, length=n_sub)[0]
+        return s_next, s
+
+    return jax.lax.scan(sample, s0, jnp.asarray(voltage_V, dtype=A.dtype))[1]
+
+
+def play(y: jnp.ndarray, width: jnp.ndarray) -> jnp.ndarray:
+    """Play (backlash) operator of half width ``width``, starting centred."""
+
+    def step(w, v):
+        w = jnp.clip(w, v - width, v + width)
+        return w, w
+
+    return jax.lax.scan(step, y[0], y)[1]
+
+
+def _context(d: Mapping[str, Any]) -> dict[str, Any]:
+    ctx: dict[str, Any] = {
+        "dt": d["dt"],
+        "t": d["t"],
+        "scales": d.get("scales", {}),
+        "data_signals": d.get("signals", {}),
+    }
+    meas = d["meas"]
+    if "disc_speed_rad_s" in meas:
+        ctx["disc_speed"] = meas["disc_speed_rad_s"]
+        ctx["omega_ref"] = d["omega_ref"]
+    return ctx
+
+
+def predict(
+    stages: str | Sequence[str],
+    p: EWBParams,
+    theta0_deg: jnp.ndarray,
+    mechanisms: Sequence[AbstractMechanism],
+    d: Mapping[str, Any],
+    n_sub: int,
+) -> dict[str, jnp.ndarray]:
+    """Predicted channels of one or several teacher-forced stages, or of ``"chain"``.
+
+    Parameters
+    ----------
+    stages
+        ``"chain"``, a stage name, or several stage names (their predictions merged).
+    p, theta0_deg
+        Base parameters (SI) and the start angle, degrees.
+    mechanisms
+        Mechanism instances with their parameter values.
+    d
+        Data: ``meas`` (measured columns), ``dt`` (s), ``t`` (s), ``r_eff`` (m),
+        ``omega_ref`` (rad/s), ``x_play`` (m; half width of the play filter on the
+        measured displacement that drives a hysteresis state).
+    n_sub
+        Motor sub-steps per sample (:func:`n_substeps`).
+    """
+    if not isinstance(stages, str):
+        out: dict[str, jnp.ndarray] = {}
+        for s in stages:
+            out |= predict(s, p, theta0_deg, mechanisms, d, n_sub)
+        return out
+    stage = stages
+    meas = d["meas"]
+    ctx = _context(d)
+    sensors = [m for m in mechanisms if m.hook == "sensor"]
+
+    def read(ch, y):
+        for m in sensors:
+            y = m.read(ch, y, ctx)
+        return y
+
+    def unread(ch, y):
+        for m in reversed(sensors):
+            y = m.unread(ch, y, ctx)
+        return y
+
+    out = {}
+    if stage in ("motor", "chain"):
+        s = motor_states(p, meas["voltage_V"], d["dt"], theta0_deg, mechanisms, n_sub)
+        theta = s[:, 2] * DEG_PER_RAD
+        out["theta_deg"] = read("theta_deg", theta)
+        out["current_A"] = read("current_A", s[:, 0])
+        if stage == "motor":
+            return out
+    elif stage == "gap":
+        theta = unread("theta_deg", meas["theta_deg"])
+
+    if stage in ("gap", "chain"):
+        theta_w = theta
+        for m in mechanisms:
+            if m.hook == "wedge_angle":
+                theta_w = m.wedge_angle(theta_w, ctx)
+        x = gap(theta_w, p.p2, p.p1, p.p0)
+        x = _correct("gap", x, mechanisms, ctx | {"theta": theta})
+        out["x_m"] = read("x_m", x)
+        if stage == "gap":
+            return out
+        x_drive = x
+    elif stage == "force":
+        x = unread("x_m", meas["x_m"])
+        x_drive = x
+
+    force_mechs = [m for m in mechanisms if m.hook == "clamp_force"]
+    if stage in ("force", "chain"):
+        if stage == "force" and force_mechs:
+            x_drive = play(x, d["x_play"])
+        F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
+        f_bell = F
+        for m in force_mechs:
+            F = m.clamp_force(x_drive, F, ctx)
+        F = _correct("force", F, mechanisms, ctx | {"x": x, "x_drive": x_drive, "f_bell": f_bell})
+        out["force_N"] = read("force_N", F)
+        if stage == "force":
+            return out
+    else:  # torque stage
+        F = unread("force_N", meas["force_N"])
+
+    mu_mechs = [m for m in mechanisms if m.hook == "friction_coefficient"]
+    factor = 1.0
+    for m in mu_mechs:
+        if not getattr(m, "USES_ENERGY", False):
+            factor = factor * m.mu_factor(ctx)
+    torque = brake_torque(F, p.mu * factor, d["r_eff"])
+    energy_mechs = [m for m in mu_mechs if getattr(m, "USES_ENERGY", False)]
+    if energy_mechs:
+        power = torque * ctx["disc_speed"]
+        ctx["energy_J"] = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power[:-1])]) * d["dt"]
+        for m in energy_mechs:
+            torque = torque * m.mu_factor(ctx)
+    torque = _correct("torque", torque, mechanisms, ctx | {"force": F, "torque0": torque})
+    out["torque_Nm"] = read("torque_Nm", torque)
+    return out
+
+
+def _correct(stage: str, y, mechanisms, signals) -> jnp.ndarray:
+    """Add the ``output`` corrections of ``stage`` (generic corrections) to ``y``."""
+    for m in mechanisms:
+        if m.hook == "output" and m.stage == stage:
+            y = y + m.correction(signals | {"y": y, "scales": signals.get("scales", {})})
+    return y
