@@ -37,6 +37,7 @@ from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .physics import brake_torque, clamp_force, gap
 from .simulate import EXPONENTIAL, Integrator, _motor_states, heun_amplification
 from .traces import CHANNELS, STAGE_COLUMNS, Trace, TraceError
+from .uncertainty import identifiability_notes, parameter_uncertainty, saturation_notes
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 STAGES: tuple[str, ...] = ("motor", "gap", "force", "torque", "chain")
@@ -44,14 +45,6 @@ STAGES: tuple[str, ...] = ("motor", "gap", "force", "torque", "chain")
 #: Parameters fitted per trace unless the user says otherwise: the start angle is a
 #: property of each recording, not of the rig.
 DEFAULT_PER_TRACE: tuple[str, ...] = ("theta0_deg",)
-
-#: Above this condition number of the column-scaled Jacobian the fit warns that some
-#: parameters are not separately identified by the data.
-ILL_CONDITIONED = 1.0e6
-#: Above this |correlation| a pair of parameters is named as trading off.
-STRONG_CORRELATION = 0.99
-#: Above this standard error in the O(1) coordinate a parameter is poorly determined.
-POORLY_DETERMINED = 0.3
 
 
 class FitError(ValueError):
@@ -166,6 +159,22 @@ class _Problem(eqx.Module):
 def _solve(problem: _Problem, u0, data, rtol, atol, max_steps):
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     return optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
+
+
+@eqx.filter_jit
+def _solve_batch(problem: _Problem, u0, data, rtol, atol, max_steps):
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+    def one(u, d):
+        sol = optx.least_squares(problem, solver, u, args=d, max_steps=max_steps, throw=False)
+        return sol.value, sol.result, sol.stats["num_steps"]
+
+    return jax.vmap(one)(u0, data)
+
+
+@eqx.filter_jit
+def _residuals_batch(problem: _Problem, u, data):
+    return jax.vmap(problem)(u, data)
 
 
 @eqx.filter_jit
@@ -472,6 +481,80 @@ def _force_grid(
 # ----------------------------------------------------------------------------- fit
 
 
+@dataclass(frozen=True)
+class _Setup:
+    """Everything about a fit that is fixed before the solver runs."""
+
+    traces: tuple[Trace, ...]
+    stage: str
+    free: tuple[str, ...]
+    per_trace: tuple[str, ...]
+    base: EWBParams
+    channels: tuple[tuple[str, ...], ...]
+    problem: _Problem
+    tdata: list[dict]
+    noise: tuple[dict[str, float], ...]
+    notes: tuple[str, ...]
+
+    def data(self, sigma: Sequence[Mapping[str, float]]) -> dict:
+        """The solver's data pytree with the given per-trace, per-channel noise levels."""
+        trs = [
+            d | {"sigma": {c: jnp.asarray(v) for c, v in s.items()}}
+            for d, s in zip(self.tdata, sigma, strict=True)
+        ]
+        return {"traces": trs, "fixed": {n: jnp.asarray(v) for n, v in self.base.as_dict().items()}}
+
+    def sensor_sigma(self) -> list[dict[str, float]]:
+        """Noise levels from the data alone (floored), the first weights."""
+        return [
+            {ch: max(s, _floor(t[ch])) for ch, s in nz.items()}
+            for t, nz in zip(self.traces, self.noise, strict=True)
+        ]
+
+
+def _setup(traces, stage, free, per_trace, fixed, integrator) -> _Setup:
+    traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
+    free_t = tuple(default_free(stage, traces) if free is None else free)
+    if per_trace is None:
+        pt = tuple(n for n in free_t if n in DEFAULT_PER_TRACE)
+    else:
+        pt = tuple(per_trace)
+    _check_request(traces, stage, free_t, pt)
+    pt = tuple(n for n in free_t if n in pt)  # in the order of free
+    base = EWBParams().replace(**{k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS})
+    notes = []
+    if integrator.method == "heun":
+        rho = heun_amplification(base, min(t.dt for t in traces))
+        if rho > 1:
+            notes.append(
+                f"Heun's method at the seed's step is unstable for this motor (amplification "
+                f"{rho:.3g} > 1): the simulation diverges; use the exponential integrator"
+            )
+    channels = tuple(stage_channels(stage, t) for t in traces)
+    problem = _Problem(
+        stage=stage,
+        shared=tuple(n for n in free_t if n not in pt),
+        per_trace=pt,
+        channels=channels,
+        n_sub=tuple(integrator.substeps(t.dt, False) for t in traces),
+        method=integrator.method,
+    )
+    return _Setup(
+        traces=traces,
+        stage=stage,
+        free=free_t,
+        per_trace=pt,
+        base=base,
+        channels=channels,
+        problem=problem,
+        tdata=[_trace_data(t, stage, ch) for t, ch in zip(traces, channels, strict=True)],
+        noise=tuple(
+            {ch: noise_sigma(t[ch]) for ch in chs} for t, chs in zip(traces, channels, strict=True)
+        ),
+        notes=tuple(notes),
+    )
+
+
 def fit(
     traces: Trace | Sequence[Trace],
     *,
@@ -482,8 +565,8 @@ def fit(
     start: Mapping[str, float] | None = None,
     integrator: Integrator = EXPONENTIAL,
     max_steps: int = 300,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
     _staged: bool = False,
 ) -> FitResult:
     """Fit the EWB model to one or several traces by weighted least squares.
@@ -511,7 +594,8 @@ def fit(
     max_steps
         Solver step limit per solve.
     rtol, atol
-        Solver tolerances (on the unconstrained coordinates).
+        Solver tolerances on the unconstrained O(1) coordinates (1e-6 is far below any
+        parameter's statistical uncertainty).
 
     Returns
     -------
@@ -526,79 +610,33 @@ def fit(
     TraceError
         A trace lacks a column the stage needs.
     """
-    traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
-    free_t = tuple(default_free(stage, traces) if free is None else free)
-    if per_trace is None:
-        pt = tuple(n for n in free_t if n in DEFAULT_PER_TRACE)
-    else:
-        pt = tuple(per_trace)
-    _check_request(traces, stage, free_t, pt)
-    pt = tuple(n for n in free_t if n in pt)  # in the order of free
-    base = EWBParams().replace(**{k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS})
-    notes: list[str] = []
-    if integrator.method == "heun":
-        rho = heun_amplification(base, min(t.dt for t in traces) / 1)
-        if rho > 1:
-            notes.append(
-                f"Heun's method at the seed's step is unstable for this motor (amplification "
-                f"{rho:.3g} > 1): the simulation diverges; use the exponential integrator"
-            )
-
-    channels = tuple(stage_channels(stage, t) for t in traces)
-    shared = tuple(n for n in free_t if n not in pt)
-    problem = _Problem(
-        stage=stage,
-        shared=shared,
-        per_trace=pt,
-        channels=channels,
-        n_sub=tuple(integrator.substeps(t.dt, False) for t in traces),
-        method=integrator.method,
-    )
-    tdata = [_trace_data(t, stage, ch) for t, ch in zip(traces, channels, strict=True)]
-    noise = tuple(
-        {ch: noise_sigma(t[ch]) for ch in chs} for t, chs in zip(traces, channels, strict=True)
-    )
-    sigma = [
-        {ch: max(s, _floor(t[ch])) for ch, s in nz.items()}
-        for t, nz in zip(traces, noise, strict=True)
-    ]
-    fixed_vals = {n: jnp.asarray(v) for n, v in base.as_dict().items()}
-
-    def data_with(sig):
-        trs = [
-            d | {"sigma": {c: jnp.asarray(v) for c, v in s.items()}}
-            for d, s in zip(tdata, sig, strict=True)
-        ]
-        return {"traces": trs, "fixed": fixed_vals}
-
-    # Starting point: automatic, then the user's values on top.
-    st = _start_values(traces, stage, free_t, pt, base, staged=_staged) | dict(start or {})
-    u0 = _to_u(problem, st, base, tdata)
-    data = data_with(sigma)
+    setup = _setup(traces, stage, free, per_trace, fixed, integrator)
+    problem = setup.problem
+    st = _start_values(
+        setup.traces, stage, setup.free, setup.per_trace, setup.base, staged=_staged
+    ) | dict(start or {})
+    u0 = _to_u(problem, st, setup.base, setup.tdata)
 
     # Solve, re-estimate the noise levels from the residuals, solve again.
+    sigma = setup.sensor_sigma()
+    data = setup.data(sigma)
     sol = _solve(problem, u0, data, rtol, atol, max_steps)
-    results = [sol.result]
-    steps = int(sol.stats["num_steps"])
+    results, steps = [sol.result], int(sol.stats["num_steps"])
     r = np.asarray(_evaluate(problem, sol.value, data)[0])
     if np.all(np.isfinite(r)):
-        sigma = _residual_sigma(r, channels, traces, sigma)
-        data = data_with(sigma)
+        sigma = _residual_sigma(r, setup.channels, setup.traces, sigma)
+        data = setup.data(sigma)
         sol = _solve(problem, sol.value, data, rtol, atol, max_steps)
         results.append(sol.result)
         steps += int(sol.stats["num_steps"])
-    u = sol.value
-    r, predicted, J = _evaluate(problem, u, data)
-    r, J = np.asarray(r), np.asarray(J)
-    ok = all(_is(res, optx.RESULTS.successful) for res in results) and bool(np.all(np.isfinite(r)))
-    message = "successful" if ok else _message(results, r, max_steps)
-    if not ok and stage == "chain" and not _staged:
+    result = _finish(setup, sol.value, data, sigma, results, steps, max_steps)
+    if not result.converged and stage == "chain" and not _staged:
         # Retry from teacher-forced fits of each stage: slower, but starts in the valley.
         return fit(
-            traces,
+            setup.traces,
             stage=stage,
-            free=free_t,
-            per_trace=pt,
+            free=setup.free,
+            per_trace=setup.per_trace,
             fixed=fixed,
             start=start,
             integrator=integrator,
@@ -607,29 +645,41 @@ def fit(
             atol=atol,
             _staged=True,
         )
+    return result
+
+
+def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResult:
+    """Uncertainty, predictions, metrics and notes at the solution ``u``."""
+    problem, traces, channels = setup.problem, setup.traces, setup.channels
+    r, predicted, J = _evaluate(problem, u, data)
+    r, J, u = np.asarray(r), np.asarray(J), np.asarray(u)
+    ok = all(_is(res, optx.RESULTS.successful) for res in results) and bool(np.all(np.isfinite(r)))
+    message = "successful" if ok else _message(results, r, max_steps)
+    notes = list(setup.notes)
     if not ok:
         notes.append(f"the solver did not converge: {message}")
 
-    # Uncertainty from the Jacobian at the optimum.
-    names = shared + tuple(f"{n}[{k}]" for k in range(len(traces)) for n in pt)
-    infos = [PARAMS[n] for n in shared] + [PARAMS[n] for _ in traces for n in pt]
-    stderr, corr, cond, sd_u = _uncertainty(J, r, np.asarray(u), infos)
-    stderr_d = dict(zip(names, stderr, strict=True))
-    notes += _identifiability_notes(names, corr, cond, stderr_d, sd_u)
+    names = problem.shared + tuple(
+        f"{n}[{k}]" for k in range(len(traces)) for n in problem.per_trace
+    )
+    infos = [PARAMS[n] for n in problem.shared] + [
+        PARAMS[n] for _ in traces for n in problem.per_trace
+    ]
+    unc = parameter_uncertainty(J, r, u, infos)
+    stderr = dict(zip(names, unc.stderr, strict=True))
+    notes += identifiability_notes(names, unc, stderr)
 
     preds = [
         {k: np.asarray(v) for k, v in p.items() if k in chs}
         for p, chs in zip(predicted, channels, strict=True)
     ]
     params, theta0 = [], []
-    for k, d in enumerate(tdata):
-        vals = problem.values(
-            np.asarray(u), base.as_dict() | {"theta0_deg": float(d["theta0_deg"])}, k
-        )
+    for k, d in enumerate(setup.tdata):
+        vals = problem.values(u, setup.base.as_dict() | {"theta0_deg": float(d["theta0_deg"])}, k)
         params.append(EWBParams(**{n: float(vals[n]) for n in MODEL_PARAMS}))
         theta0.append(float(vals["theta0_deg"]))
-    if stage in ("force", "chain") and any(n in free_t for n in ("a", "b", "c")):
-        notes += _saturation_notes(traces, preds, params, corr, names)
+    if setup.stage in ("force", "chain") and any(n in setup.free for n in ("a", "b", "c")):
+        notes += saturation_notes(traces, preds, params, unc.corr, names)
     trace_metrics = tuple(
         {ch: channel_metrics(p[ch], t[ch]) for ch in chs}
         for p, t, chs in zip(preds, traces, channels, strict=True)
@@ -640,19 +690,19 @@ def fit(
         meas = np.concatenate([t[ch] for t, chs in zip(traces, channels, strict=True) if ch in chs])
         pooled[ch] = channel_metrics(sim, meas)
     return FitResult(
-        stage=stage,
+        stage=setup.stage,
         trace_names=tuple(t.name for t in traces),
-        free=free_t,
-        per_trace=pt,
+        free=setup.free,
+        per_trace=setup.per_trace,
         params=tuple(params),
         theta0_deg=tuple(theta0),
-        stderr=stderr_d,
-        corr=corr,
+        stderr=stderr,
+        corr=unc.corr,
         corr_names=names,
-        condition_number=cond,
+        condition_number=unc.condition_number,
         metrics=pooled,
         trace_metrics=trace_metrics,
-        noise=noise,
+        noise=setup.noise,
         sigma=tuple(sigma),
         converged=ok,
         message=message,
@@ -660,10 +710,75 @@ def fit(
         cost=float(0.5 * np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),
         warnings=tuple(notes),
         predictions=tuple(preds),
-        u=np.asarray(u),
+        u=u,
         problem=problem,
         data=data,
     )
+
+
+def fit_batch(
+    traces: Sequence[Trace],
+    *,
+    stage: Stage = "chain",
+    free: Iterable[str] | None = None,
+    fixed: Mapping[str, float] | None = None,
+    integrator: Integrator = EXPONENTIAL,
+    max_steps: int = 300,
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
+) -> list[FitResult]:
+    """Fit many traces independently, as vectorised batches (``vmap`` of one solver).
+
+    Traces of the same length, rate and channels form one batch: their solves run as
+    one compiled, vectorised computation. Each result is the same as ``fit(trace, ...)``
+    would give, up to solver tolerance; a batch member that does not converge falls back
+    to :func:`fit` on its own (which tries a staged start).
+
+    Returns
+    -------
+    list of FitResult, in the order of ``traces``.
+    """
+    setups = [_setup(t, stage, free, None, fixed, integrator) for t in traces]
+    groups: dict[tuple, list[int]] = {}
+    for k, s in enumerate(setups):
+        groups.setdefault((s.problem, s.traces[0].n), []).append(k)
+    out: list[FitResult | None] = [None] * len(traces)
+    for (problem, _), members in groups.items():
+        sub = [setups[k] for k in members]
+        u0 = jnp.stack(
+            [
+                _to_u(
+                    problem,
+                    _start_values(s.traces, stage, s.free, s.per_trace, s.base),
+                    s.base,
+                    s.tdata,
+                )
+                for s in sub
+            ]
+        )
+        sigma = [s.sensor_sigma() for s in sub]
+        data = _stack([s.data(sg) for s, sg in zip(sub, sigma, strict=True)])
+        u1, res1, steps1 = _solve_batch(problem, u0, data, rtol, atol, max_steps)
+        r = np.asarray(_residuals_batch(problem, u1, data))
+        sigma = [
+            _residual_sigma(r[j], s.channels, s.traces, sg) if np.all(np.isfinite(r[j])) else sg
+            for j, (s, sg) in enumerate(zip(sub, sigma, strict=True))
+        ]
+        data = _stack([s.data(sg) for s, sg in zip(sub, sigma, strict=True)])
+        u2, res2, steps2 = _solve_batch(problem, u1, data, rtol, atol, max_steps)
+        for j, (k, s) in enumerate(zip(members, sub, strict=True)):
+            results = [jax.tree_util.tree_map(lambda x, j=j: x[j], rr) for rr in (res1, res2)]
+            steps = int(steps1[j]) + int(steps2[j])
+            one = jax.tree_util.tree_map(lambda x, j=j: x[j], data)
+            res = _finish(s, u2[j], one, sigma[j], results, steps, max_steps)
+            if not res.converged:
+                res = fit(s.traces, stage=stage, free=s.free, fixed=fixed, integrator=integrator)
+            out[k] = res
+    return out
+
+
+def _stack(datas: Sequence[dict]) -> dict:
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *datas)
 
 
 def _floor(y: np.ndarray) -> float:
@@ -711,92 +826,3 @@ def _message(results, r, max_steps) -> str:
         if not _is(res, optx.RESULTS.successful):
             return str(optx.RESULTS[res])
     return "unknown failure"
-
-
-def _uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> tuple:
-    """Standard errors (SI), correlation and condition number from the Jacobian."""
-    n, p = J.shape
-    if p == 0:
-        return [], np.zeros((0, 0)), 1.0, np.zeros(0)
-    scale = np.linalg.norm(J, axis=0)
-    scale = np.where(scale > 0, scale, 1.0)
-    Js = J / scale
-    # SVD of the small triangular factor: the same singular values as Js, far cheaper.
-    _, s, Vt = np.linalg.svd(np.linalg.qr(Js, mode="r"))
-    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
-    keep = s > s[0] * 1e-12
-    inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
-    dof = max(n - p, 1)
-    cov_u = inv / np.outer(scale, scale) * float(r @ r) / dof
-    sd_u = np.sqrt(np.clip(np.diag(cov_u), 0, None))
-    corr = cov_u / np.outer(np.where(sd_u > 0, sd_u, 1), np.where(sd_u > 0, sd_u, 1))
-    stderr = []
-    for j, info in enumerate(infos):
-        se = float(abs(info.dp_du(u[j])) * sd_u[j])
-        stderr.append(se if np.isfinite(se) and keep.all() else None)
-    return stderr, corr, cond, np.where(keep.all(), sd_u, np.inf)
-
-
-def _identifiability_notes(names, corr, cond, stderr, sd_u) -> list[str]:
-    """Plain-language notes on what the data do not pin down.
-
-    A parameter is *poorly determined* when its standard error in the O(1) coordinate
-    exceeds :data:`POORLY_DETERMINED` (for log-scaled parameters: a relative error above
-    30 %). Pairs correlated beyond :data:`STRONG_CORRELATION` are named, since their
-    single standard errors understate how they move together.
-    """
-    notes = []
-    if cond > ILL_CONDITIONED:
-        notes.append(
-            f"the fit is ill-conditioned (condition number {cond:.3g}): some combination of "
-            "the free parameters is not identified by this trace; fix a parameter or record "
-            "a richer input"
-        )
-    poor = [n for n, s in zip(names, sd_u, strict=True) if not s <= POORLY_DETERMINED]
-    if poor:
-        notes.append(
-            f"poorly determined by this trace: {', '.join(poor)} (standard error beyond "
-            f"{POORLY_DETERMINED:.0%} of its scale); treat their values as unreliable"
-        )
-    pairs = [
-        f"{names[i]}-{names[j]} ({corr[i, j]:+.3f})"
-        for i in range(len(names))
-        for j in range(i + 1, len(names))
-        if abs(corr[i, j]) > STRONG_CORRELATION
-    ]
-    if pairs:
-        notes.append(
-            "strongly correlated estimates (their errors move together, so single standard "
-            f"errors understate joint uncertainty): {', '.join(pairs)}"
-        )
-    none = [n for n, s in stderr.items() if s is None]
-    if none:
-        notes.append(f"no standard error for {', '.join(none)}: the Jacobian is singular there")
-    return notes
-
-
-def _saturation_notes(traces, preds, params, corr, names) -> list[str]:
-    """Say plainly when the piston never passes the bell's centre c."""
-    notes = []
-    for t, pred, p in zip(traces, preds, params, strict=True):
-        x = t["x_m"] if t.has("x_m") else pred.get("x_m")
-        if x is None:
-            continue
-        c, a = float(p.c), float(p.a)
-        if float(np.max(x)) < c:
-            idx = {n: i for i, n in enumerate(names)}
-            rho = [
-                f"{m}-{n} {corr[idx[m], idx[n]]:+.2f}"
-                for m, n in (("a", "b"), ("a", "c"), ("b", "c"))
-                if m in idx and n in idx
-            ]
-            notes.append(
-                f"{t.name}: the piston never passes the bell's centre c (max x = "
-                f"{np.max(x) * 1e3:.3f} mm < c = {c * 1e3:.3f} mm, a = {a * 1e3:.3f} mm), so "
-                "a, b and c are inferred from the rising flank alone and trade off"
-                + (f" (correlations {', '.join(rho)})" if rho else "")
-                + ": with more noise or a shorter apply, quite different (a, b, c) fit almost "
-                "equally well. Their standard errors above include this; to pin them down, "
-                "record an apply that drives the piston through full clamping, or fix b."
-            )
-    return notes

@@ -1,0 +1,145 @@
+"""Uncertainty of a least-squares fit, and what the data do not pin down, in words.
+
+Standard errors come from the Jacobian ``J`` of the weighted residuals at the optimum,
+in the unconstrained coordinates ``u``: ``cov_u = s^2 (J^T J)^-1`` with ``s^2`` the
+residual variance per degree of freedom, then mapped to SI units by the delta method
+(``se_p = |dp/du| se_u``; the transforms act elementwise, so correlations carry over).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Above this condition number of the column-scaled Jacobian the fit is ill-conditioned.
+ILL_CONDITIONED = 1.0e6
+#: Above this |correlation| a pair of parameters is named as trading off.
+STRONG_CORRELATION = 0.99
+#: Above this standard error in the O(1) coordinate a parameter is poorly determined
+#: (for log-scaled parameters: a relative standard error above 30 %).
+POORLY_DETERMINED = 0.3
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Linearised uncertainty at a least-squares optimum.
+
+    Attributes
+    ----------
+    stderr
+        Standard error of each parameter, SI units (None where the Jacobian is singular).
+    corr
+        Correlation matrix of the parameters.
+    condition_number
+        Of the column-scaled Jacobian.
+    sd_u
+        Standard errors in the unconstrained O(1) coordinates (inf where singular).
+    """
+
+    stderr: list[float | None]
+    corr: np.ndarray
+    condition_number: float
+    sd_u: np.ndarray
+
+
+def parameter_uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> Uncertainty:
+    """Standard errors (SI), correlations and condition number from the Jacobian.
+
+    Parameters
+    ----------
+    J
+        Jacobian of the weighted residuals with respect to ``u``, shape (n, p).
+    r
+        Weighted residuals at the optimum, shape (n,).
+    u
+        The optimum in unconstrained coordinates, shape (p,).
+    infos
+        The :class:`~ewb_ident.params.ParamInfo` of each coordinate.
+    """
+    n, p = J.shape
+    if p == 0:
+        return Uncertainty([], np.zeros((0, 0)), 1.0, np.zeros(0))
+    scale = np.linalg.norm(J, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    Js = J / scale
+    # SVD of the small triangular factor: the same singular values as Js, far cheaper.
+    _, s, Vt = np.linalg.svd(np.linalg.qr(Js, mode="r"))
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    keep = s > s[0] * 1e-12
+    inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
+    cov_u = inv / np.outer(scale, scale) * float(r @ r) / max(n - p, 1)
+    sd_u = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    safe = np.where(sd_u > 0, sd_u, 1.0)
+    corr = cov_u / np.outer(safe, safe)
+    stderr: list[float | None] = []
+    for j, info in enumerate(infos):
+        se = float(abs(info.dp_du(u[j])) * sd_u[j])
+        stderr.append(se if np.isfinite(se) and keep.all() else None)
+    return Uncertainty(stderr, corr, cond, np.where(keep.all(), sd_u, np.inf))
+
+
+def identifiability_notes(names, unc: Uncertainty, stderr) -> list[str]:
+    """Plain-language notes on what the data do not pin down.
+
+    A parameter is *poorly determined* when its standard error in the O(1) coordinate
+    exceeds :data:`POORLY_DETERMINED`. Pairs correlated beyond
+    :data:`STRONG_CORRELATION` are named, since their single standard errors understate
+    how they move together.
+    """
+    notes = []
+    corr = unc.corr
+    if unc.condition_number > ILL_CONDITIONED:
+        notes.append(
+            f"the fit is ill-conditioned (condition number {unc.condition_number:.3g}): some "
+            "combination of the free parameters is not identified by this trace; fix a "
+            "parameter or record a richer input"
+        )
+    poor = [n for n, s in zip(names, unc.sd_u, strict=True) if not s <= POORLY_DETERMINED]
+    if poor:
+        notes.append(
+            f"poorly determined by this trace: {', '.join(poor)} (standard error beyond "
+            f"{POORLY_DETERMINED:.0%} of its scale); treat their values as unreliable"
+        )
+    pairs = [
+        f"{names[i]}-{names[j]} ({corr[i, j]:+.3f})"
+        for i in range(len(names))
+        for j in range(i + 1, len(names))
+        if abs(corr[i, j]) > STRONG_CORRELATION
+    ]
+    if pairs:
+        notes.append(
+            "strongly correlated estimates (their errors move together, so single standard "
+            f"errors understate joint uncertainty): {', '.join(pairs)}"
+        )
+    none = [n for n, s in stderr.items() if s is None]
+    if none:
+        notes.append(f"no standard error for {', '.join(none)}: the Jacobian is singular there")
+    return notes
+
+
+def saturation_notes(traces, preds, params, corr, names) -> list[str]:
+    """Say plainly when the piston never passes the bell's centre c."""
+    notes = []
+    for t, pred, p in zip(traces, preds, params, strict=True):
+        x = t["x_m"] if t.has("x_m") else pred.get("x_m")
+        if x is None:
+            continue
+        c, a = float(p.c), float(p.a)
+        if float(np.max(x)) < c:
+            idx = {n: i for i, n in enumerate(names)}
+            rho = [
+                f"{m}-{n} {corr[idx[m], idx[n]]:+.2f}"
+                for m, n in (("a", "b"), ("a", "c"), ("b", "c"))
+                if m in idx and n in idx
+            ]
+            notes.append(
+                f"{t.name}: the piston never passes the bell's centre c (max x = "
+                f"{np.max(x) * 1e3:.3f} mm < c = {c * 1e3:.3f} mm, a = {a * 1e3:.3f} mm), so "
+                "a, b and c are inferred from the rising flank alone and trade off"
+                + (f" (correlations {', '.join(rho)})" if rho else "")
+                + ": with more noise or a shorter apply, quite different (a, b, c) fit almost "
+                "equally well. Their standard errors above include this; to pin them down, "
+                "record an apply that drives the piston through full clamping, or fix b."
+            )
+    return notes
