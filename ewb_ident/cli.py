@@ -327,6 +327,43 @@ def sample(
     )
 
 
+@app.command()
+def study(
+    definition: Annotated[Path, typer.Argument(help="Study definition (TOML), see studies/.")],
+    out: OutDir,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Dask scheduler address (tcp://host:8786); default: in-process."),
+    ] = None,
+) -> None:
+    """Run a batch study: writes OUT/results.csv (one row per case and parameter) and
+    OUT/report.md."""
+    from rich.progress import Progress
+
+    from .outputs import atomic_write
+    from .studies import StudyError, load_study, run_study, summarise
+
+    try:
+        spec = load_study(definition)
+    except StudyError as err:
+        _fail(str(err))
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"study {spec.name}", total=len(spec.cases()))
+        table = run_study(
+            spec, scheduler=scheduler, progress=lambda done, total: bar.update(job, completed=done)
+        )
+    report = summarise(spec, table)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(
+        [
+            (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
+            (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
+        ]
+    )
+    typer.echo(report)
+    typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
+
+
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
