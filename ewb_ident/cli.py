@@ -364,6 +364,29 @@ def study(
     typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
 
 
+@app.command()
+def report(
+    traces: Traces,
+    out: OutDir,
+    stage: Annotated[str, typer.Option(help="Stage of the least-squares fit.")] = "chain",
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Validation report: OUT/index.html (self-contained) and PNG figures."""
+    from .fit import fit as run_fit
+    from .validation_report import build_report, write_report
+
+    try:
+        trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check)
+        result = run_fit(trs, stage=stage)
+    except _bad_input_errors() as err:
+        _fail(str(err))
+    page, figures = build_report(trs, result)
+    path = write_report(out, page, figures)
+    typer.echo(f"wrote {path} ({len(figures)} figures)")
+
+
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,

@@ -1,0 +1,452 @@
+"""The validation report: one self-contained HTML page plus its PNG figures.
+
+Sections, each present when its input is: data overview; measured against simulated per
+channel with residuals by phase (as the seed's Figures 12-13); the bell curve with its
+gapping / clamping / saturation regions from the fitted parameters (the seed's Figure
+8); the parameter table (least-squares estimate and standard error, posterior mean and
+90 % interval, the seed's Table 2 value); the metrics table beside the seed's reported
+errors; MCMC diagnostics with the pair plot; and the diagnosis of missing physics (where,
+what physics, before and after).
+
+Figures are drawn with matplotlib's Agg backend and embedded in the page as data URIs, so
+the HTML file can be mailed on its own; the PNG files are written beside it as well.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .fit import FitResult
+from .metrics import SEED_PERCENT_ERROR, noise_sigma
+from .outputs import atomic_write
+from .params import PARAMS, SEED
+from .traces import Trace
+
+CHANNEL_LABELS = {
+    "voltage_V": "voltage (V)",
+    "current_A": "current (A)",
+    "theta_deg": "pinion angle (deg)",
+    "x_m": "piston gap x (mm)",
+    "force_N": "clamping force (N)",
+    "torque_Nm": "brake torque (N m)",
+    "disc_speed_rad_s": "disc speed (rad/s)",
+}
+SCALE = {"x_m": 1e3}  # shown in mm
+PHASE_COLOURS = {
+    "gapping": "#f0f0f0",
+    "clamping": "#fde8c8",
+    "saturation": "#d8ecd8",
+    "release": "#d8e4f4",
+}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    _plt().close(fig)
+    return buf.getvalue()
+
+
+def _phases(trace: Trace) -> np.ndarray:
+    from .locate import phase_labels
+
+    return phase_labels(trace)
+
+
+def _shade(ax, t: np.ndarray, phases: np.ndarray) -> None:
+    start = 0
+    for k in range(1, len(t) + 1):
+        if k == len(t) or phases[k] != phases[start]:
+            ax.axvspan(t[start], t[min(k, len(t) - 1)], color=PHASE_COLOURS[phases[start]], lw=0)
+            start = k
+
+
+def figure_overview(trace: Trace) -> bytes:
+    """Every recorded channel against time."""
+    plt = _plt()
+    cols = [c for c in CHANNEL_LABELS if trace.has(c)]
+    fig, axes = plt.subplots(
+        len(cols), 1, figsize=(8, 1.6 * len(cols)), sharex=True, layout="constrained"
+    )
+    for ax, c in zip(np.atleast_1d(axes), cols, strict=True):
+        ax.plot(trace.time_s, trace[c] * SCALE.get(c, 1.0), lw=0.8, color="k")
+        ax.set_ylabel(CHANNEL_LABELS[c], fontsize=8)
+    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
+    fig.suptitle(f"{trace.name}: recorded channels", fontsize=10)
+    return _png(fig)
+
+
+def figure_fit(trace: Trace, predictions: Mapping[str, np.ndarray], title: str) -> bytes:
+    """Measured against simulated per channel, residuals below, phases shaded."""
+    plt = _plt()
+    cols = [c for c in CHANNEL_LABELS if c in predictions]
+    phases = _phases(trace)
+    fig, axes = plt.subplots(
+        2 * len(cols),
+        1,
+        figsize=(8, 2.2 * len(cols)),
+        sharex=True,
+        gridspec_kw={"height_ratios": [2, 1] * len(cols)},
+        layout="constrained",
+    )
+    t = trace.time_s
+    for j, c in enumerate(cols):
+        s = SCALE.get(c, 1.0)
+        top, bottom = axes[2 * j], axes[2 * j + 1]
+        _shade(top, t, phases)
+        top.plot(t, trace[c] * s, lw=0.8, color="k", label="measured")
+        top.plot(t, predictions[c] * s, lw=1.0, color="tab:red", label="simulated")
+        top.set_ylabel(CHANNEL_LABELS[c], fontsize=8)
+        bottom.plot(t, (trace[c] - predictions[c]) * s, lw=0.6, color="tab:blue")
+        bottom.axhline(0, color="k", lw=0.5)
+        bottom.set_ylabel("residual", fontsize=8)
+    axes[0].legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("time (s)  (shading: gapping / clamping / saturation / release)")
+    fig.suptitle(title, fontsize=10)
+    return _png(fig)
+
+
+def figure_bell(params, traces: Sequence[Trace]) -> bytes:
+    """Clamping force against gap from the fitted bell, with its three regions."""
+    plt = _plt()
+    F_rt, a, b, c = (float(getattr(params, n)) for n in ("F_rt", "a", "b", "c"))
+    x = np.linspace(c - 3.0 * a, c + 0.5 * a, 600)
+    F = F_rt / (1 + np.abs((x - c) / a) ** (2 * b))
+    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
+    rising = x < c  # F increases with x here
+    lo, hi = (float(np.interp(q, F[rising] / F_rt, x[rising])) for q in (0.05, 0.95))
+    regions = (((x[0], lo), "gapping"), ((lo, hi), "clamping"), ((hi, x[-1]), "saturation"))
+    for (x0, x1), name in regions:
+        ax.axvspan(x0 * 1e3, x1 * 1e3, color=PHASE_COLOURS[name], lw=0)
+        ax.text((x0 + x1) / 2 * 1e3, 0.5 * F_rt, name, ha="center", fontsize=8, color="0.3")
+    for tr in traces:
+        if tr.has("x_m") and tr.has("force_N"):
+            ax.plot(tr["x_m"] * 1e3, tr["force_N"], ".", ms=2, alpha=0.4, label=f"{tr.name}")
+    ax.plot(x * 1e3, F, color="tab:red", lw=1.5, label="fitted bell")
+    Fs = float(SEED.F_rt) / (1 + np.abs((x - float(SEED.c)) / float(SEED.a)) ** (2 * float(SEED.b)))
+    ax.plot(x * 1e3, Fs, "--", color="0.4", lw=1, label="seed Table 2 (b = 2.82)")
+    ax.axvline(c * 1e3, color="tab:red", lw=0.6, ls=":")
+    ax.set_xlabel("piston gap x (mm)")
+    ax.set_ylabel("clamping force (N)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("Clamping force: the generalized bell (seed Figure 8)", fontsize=10)
+    return _png(fig)
+
+
+def phase_table(trace: Trace, predictions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
+    """RMS residual per channel and phase, beside the channel's sensor noise."""
+    phases = _phases(trace)
+    rows = []
+    for c, pred in predictions.items():
+        if not trace.has(c):
+            continue
+        r = trace[c] - pred
+        row: dict[str, Any] = {"channel": c, "noise": noise_sigma(trace[c])}
+        for ph in PHASE_COLOURS:
+            sel = phases == ph
+            row[ph] = float(np.sqrt(np.mean(r[sel] ** 2))) if sel.sum() > 5 else None
+        rows.append(row)
+    return rows
+
+
+# ----------------------------------------------------------------------------- HTML
+
+CSS = """
+body{font-family:system-ui,Segoe UI,Helvetica,Arial,sans-serif;max-width:1000px;margin:2em auto;
+color:#222;line-height:1.45}
+h1{font-size:1.6em;border-bottom:2px solid #b22;padding-bottom:.2em}
+h2{font-size:1.25em;margin-top:1.8em;color:#822}
+table{border-collapse:collapse;margin:.6em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f4f4f4} td.l,th.l{text-align:left}
+.warn{background:#fff6e0;border-left:4px solid #e0a000;padding:.4em .8em;margin:.4em 0}
+.ok{background:#eef8ee;border-left:4px solid #393;padding:.4em .8em;margin:.4em 0}
+.finding{background:#f3f0fb;border-left:4px solid #63a;padding:.5em .9em;margin:.6em 0}
+img{max-width:100%;border:1px solid #ddd;margin:.4em 0}
+.small{font-size:.85em;color:#555}
+"""
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x))
+
+
+def _num(v: Any, digits: int = 4) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float | int | np.floating):
+        return f"{float(v):.{digits}g}"
+    return _e(v)
+
+
+def _table(head: Sequence[str], rows: Sequence[Sequence[Any]], left: int = 1) -> str:
+    th = "".join(f'<th class="{"l" if j < left else ""}">{_e(h)}</th>' for j, h in enumerate(head))
+    body = "".join(
+        "<tr>"
+        + "".join(f'<td class="{"l" if j < left else ""}">{v}</td>' for j, v in enumerate(row))
+        + "</tr>"
+        for row in rows
+    )
+    return f"<table><tr>{th}</tr>{body}</table>"
+
+
+def _img(name: str, data: bytes, alt: str) -> str:
+    b64 = base64.b64encode(data).decode()
+    return f'<img src="data:image/png;base64,{b64}" alt="{_e(alt)}" title="{_e(name)}">'
+
+
+def build_report(
+    traces: Sequence[Trace],
+    fit: FitResult,
+    *,
+    posterior: Any | None = None,
+    diagnosis: Any | None = None,
+    title: str | None = None,
+) -> tuple[str, dict[str, bytes]]:
+    """The report page and its figures (nothing is written).
+
+    Parameters
+    ----------
+    traces
+        The traces, in the order of ``fit``.
+    fit
+        A whole-chain or stage fit of those traces.
+    posterior
+        Optional :class:`~ewb_ident.posterior.PosteriorResult` (its ``to_summary_json()``
+        feeds the parameter table and the MCMC section; its pair plot is included).
+    diagnosis
+        Optional :class:`~ewb_ident.diagnose.DiagnosisResult` (its ``to_json()``).
+
+    Returns
+    -------
+    html : str
+        The self-contained page.
+    figures : dict
+        PNG bytes by file name.
+    """
+    figures: dict[str, bytes] = {}
+    parts: list[str] = []
+    names = ", ".join(t.name for t in traces)
+    title = title or f"EWB validation report: {names}"
+    parts.append(f"<h1>{_e(title)}</h1>")
+    status = "converged" if fit.converged else f"did NOT converge: {fit.message}"
+    parts.append(
+        f'<p class="small">Least squares, stage <b>{_e(fit.stage)}</b> ({status}); '
+        f"{len(traces)} trace(s). Generated by ewb-ident.</p>"
+    )
+
+    # Data overview.
+    parts.append("<h2>1. Data</h2>")
+    rows = []
+    for t in traces:
+        cols = ", ".join(c for c in CHANNEL_LABELS if t.has(c))
+        rows.append(
+            [_e(t.name), _num(t.sample_rate_hz), _num(t.duration_s), _num(t.r_eff_m), _e(cols)]
+        )
+        key = f"overview_{t.name}.png"
+        figures[key] = figure_overview(t)
+        parts.append(_img(key, figures[key], f"recorded channels of {t.name}"))
+    parts.insert(
+        -len(traces),
+        _table(["trace", "rate (Hz)", "length (s)", "r_eff (m)", "channels"], rows),
+    )
+
+    # Parameters.
+    parts.append("<h2>2. Parameters</h2>")
+    post = posterior.to_summary_json() if posterior is not None else None
+    seed = SEED.as_dict()
+    head = ["parameter", "unit", "least squares", "std. error"]
+    if post:
+        head += [
+            "posterior mean",
+            f"{int(100 * post.get('hdi_prob', 0.9))} % interval",
+            "ESS",
+            "R-hat",
+        ]
+    head += ["seed (Table 2)"]
+    rows = []
+    values = fit.values
+    for name in fit.free:
+        if name in fit.per_trace and len(traces) > 1:
+            continue
+        se = fit.stderr.get(name, fit.stderr.get(f"{name}[0]"))
+        row = [_e(name), _e(PARAMS[name].unit), _num(values[name]), _num(se, 2)]
+        if post:
+            p = post["params"].get(name) or post["params"].get(f"{name}[0]") or {}
+            row += [
+                _num(p.get("mean")),
+                f"{_num(p.get('hdi_low'))} … {_num(p.get('hdi_high'))}" if p else "–",
+                _num(p.get("ess"), 3),
+                _num(p.get("r_hat"), 3),
+            ]
+        row.append(_num(seed.get(name)))
+        rows.append(row)
+    parts.append(_table(head, rows, left=2))
+    parts.append(
+        '<p class="small">b is dimensionless (the seed paper prints 2.820e-4 m, a units '
+        "slip: with that value the bell is a flat 1750 N). Fixed parameters: "
+        + _e(
+            ", ".join(
+                f"{n} = {seed_v:.4g}"
+                for n, seed_v in fit.params[0].as_dict().items()
+                if n not in fit.free
+            )
+        )
+        + ".</p>"
+    )
+    for w in fit.warnings:
+        parts.append(f'<div class="warn">{_e(w)}</div>')
+
+    # Fit quality.
+    parts.append("<h2>3. Measured against simulated</h2>")
+    rows = []
+    for ch, m in fit.metrics.items():
+        rows.append(
+            [
+                _e(CHANNEL_LABELS.get(ch, ch)),
+                _num(m["rmse"]),
+                _num(m["nrmse_pct"], 3),
+                _num(m["percent_error"], 3),
+                _num(SEED_PERCENT_ERROR.get(ch), 2),
+            ]
+        )
+    parts.append(_table(["channel", "RMSE", "NRMSE %", "% error", "seed's reported % error"], rows))
+    parts.append(
+        '<p class="small">RMSE in the channel\'s unit (x in m); NRMSE: RMSE over the measured '
+        "range; % error: relative L2 error 100·‖sim−meas‖/‖meas‖ (the paper does not define "
+        "its percent error; compare loosely).</p>"
+    )
+    for k, t in enumerate(traces):
+        key = f"fit_{t.name}.png"
+        figures[key] = figure_fit(
+            t, fit.predictions[k], f"{t.name}: measured vs simulated ({fit.stage})"
+        )
+        parts.append(_img(key, figures[key], f"measured against simulated, {t.name}"))
+        rows = [
+            [_e(r["channel"]), _num(r["noise"], 3)] + [_num(r[p], 3) for p in PHASE_COLOURS]
+            for r in phase_table(t, fit.predictions[k])
+        ]
+        parts.append(f"<p>RMS residual by phase, {_e(t.name)}, beside the sensor noise:</p>")
+        parts.append(_table(["channel", "sensor noise", *PHASE_COLOURS], rows))
+
+    # Bell curve.
+    parts.append("<h2>4. The clamping-force curve</h2>")
+    figures["bell.png"] = figure_bell(fit.params[0], traces)
+    parts.append(_img("bell.png", figures["bell.png"], "bell curve with regions"))
+
+    if post:
+        parts.append(_posterior_section(post, posterior, figures))
+    if diagnosis is not None:
+        parts.append(_diagnosis_section(diagnosis.to_json(), diagnosis, figures))
+
+    page = (
+        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>{_e(title)}</title>"
+        f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
+    )
+    return page, figures
+
+
+def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[str, bytes]) -> str:
+    out = ["<h2>5. Posterior (MCMC)</h2>"]
+    conv = post.get("converged")
+    out.append(
+        f'<div class="{"ok" if conv else "warn"}">'
+        + (
+            "Chains converged: R-hat between independent ensembles and ESS within limits."
+            if conv
+            else "Chains did NOT converge; treat the intervals as provisional."
+        )
+        + "</div>"
+    )
+    diag = {
+        k: v for k, v in post.items() if k not in ("params",) and not isinstance(v, dict | list)
+    }
+    if diag:
+        out.append(_table(["diagnostic", "value"], [[_e(k), _num(v)] for k, v in diag.items()]))
+    for w in post.get("warnings", []) or []:
+        out.append(f'<div class="warn">{_e(w)}</div>')
+    for item in post.get("identifiability", []) or []:
+        text = item.get("statement") if isinstance(item, dict) else item
+        if text:
+            out.append(f'<div class="warn">{_e(text)}</div>')
+    pair = getattr(posterior, "pair_plot_png", None)
+    if callable(pair):
+        figures["pair.png"] = pair()
+        out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
+    return "".join(out)
+
+
+def _diagnosis_section(doc: Mapping[str, Any], diagnosis: Any, figures: dict[str, bytes]) -> str:
+    out = ["<h2>6. Diagnosis: physics the model leaves out</h2>"]
+    verdict = doc.get("verdict")
+    words = {
+        "none": "The baseline model fits every stage to the sensor noise: nothing is missing.",
+        "found": "The baseline model leaves physics out; the catalog explains it:",
+        "unexplained": "A mismatch is located, but no catalog mechanism explains it:",
+    }
+    kind = "ok" if verdict == "none" else "warn"
+    out.append(f'<div class="{kind}">{_e(words.get(verdict, verdict))}</div>')
+    for f in doc.get("findings", []):
+        head = f"<b>{_e(f['effect'])}</b> ({_e(f['stage'])} stage)"
+        out.append(f'<div class="finding">{head}: {_e(f["explanation"])}</div>')
+        rows = []
+        for ch, before in f.get("metrics_before", {}).items():
+            after = f.get("metrics_after", {}).get(ch, {})
+            rows.append([_e(ch), _num(before.get("nrmse_pct"), 3), _num(after.get("nrmse_pct"), 3)])
+        if rows:
+            out.append(_table(["channel", "NRMSE % before", "NRMSE % after"], rows))
+    if doc.get("mismatches"):
+        rows = [
+            [
+                _e(m["stage"]),
+                _e(m["phase"]),
+                _e(m["channel"]),
+                _num(m["t_start_s"], 3),
+                _num(m["t_end_s"], 3),
+                _num(m["score"], 3),
+                _e(m["summary"]),
+            ]
+            for m in doc["mismatches"]
+        ]
+        out.append("<p>Located mismatches, most severe first:</p>")
+        out.append(
+            _table(
+                ["stage", "phase", "channel", "from (s)", "to (s)", "score", "summary"],
+                rows,
+                left=3,
+            )
+        )
+    figs = getattr(diagnosis, "figures", None)
+    if callable(figs):
+        for name, data in figs().items():
+            figures[name] = data
+            out.append(_img(name, data, name))
+    return "".join(out)
+
+
+def write_report(out_dir: str | Path, page: str, figures: Mapping[str, bytes]) -> Path:
+    """Write ``index.html`` and the PNG figures into ``out_dir``, atomically per file."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    writers = [
+        (out / name, lambda tmp, d=data: tmp.write_bytes(d)) for name, data in figures.items()
+    ]
+    writers.append((out / "index.html", lambda tmp: tmp.write_text(page, encoding="utf-8")))
+    atomic_write(writers)
+    return out / "index.html"

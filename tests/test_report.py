@@ -1,0 +1,73 @@
+"""The validation report: its content, and that it renders in a real browser."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from ewb_ident.fit import fit
+from ewb_ident.traces import read_trace
+from ewb_ident.validation_report import build_report, write_report
+
+DATA = Path(__file__).parents[1] / "datasets"
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    trace = read_trace(DATA / "staircase_200hz.csv")
+    result = fit(trace)
+    page, figures = build_report([trace], result)
+    out = tmp_path_factory.mktemp("report")
+    return write_report(out, page, figures), page, figures
+
+
+def test_report_holds_every_section_and_the_seed_values(report):
+    path, page, figures = report
+    for text in (
+        "1. Data",
+        "2. Parameters",
+        "3. Measured against simulated",
+        "4. The clamping-force curve",
+        "seed (Table 2)",
+        "seed&#x27;s reported % error",
+        "units slip",
+        "RMS residual by phase",
+    ):
+        assert text in page, text
+    assert {"bell.png", "fit_staircase_200hz.png", "overview_staircase_200hz.png"} <= set(figures)
+    assert all(data[:8] == b"\x89PNG\r\n\x1a\n" for data in figures.values())
+    assert path.read_text() == page and (path.parent / "bell.png").exists()
+    assert page.count("data:image/png;base64,") == len(figures)  # self-contained
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium not installed")
+def test_report_renders_in_headless_chromium(report, tmp_path):
+    from PIL import Image
+
+    path, _, _ = report
+    shot = tmp_path / "shot.png"
+    subprocess.run(
+        [
+            "chromium",
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            f"--user-data-dir={tmp_path / 'profile'}",
+            "--window-size=1100,2400",
+            f"--screenshot={shot}",
+            path.as_uri(),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
+    image = Image.open(shot).convert("L")
+    assert image.size == (1100, 2400)
+    extrema = image.getextrema()
+    assert extrema[0] < 60 and extrema[1] > 200  # text and figures drawn, not a blank page
