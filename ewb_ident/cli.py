@@ -387,6 +387,33 @@ def report(
     typer.echo(f"wrote {path} ({len(figures)} figures)")
 
 
+@app.command()
+def compare(
+    old: Annotated[list[Path], typer.Option("--old", help="Trace before the change (repeat).")],
+    new: Annotated[list[Path], typer.Option("--new", help="Trace after the change (repeat).")],
+    out: OutDir,
+    stage: Annotated[str, typer.Option(help="Stage of the fits.")] = "chain",
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Hardware-change refit: which parameters changed between OLD and NEW traces, by how
+    much, how probably, and what it means for brake torque; writes OUT/compare.json."""
+    from .compare import compare as run_compare
+    from .outputs import write_json
+
+    try:
+        before = _read(old, (stage,), mapping, fill_gaps, no_unit_check)
+        after = _read(new, (stage,), mapping, fill_gaps, no_unit_check)
+        result = run_compare(before, after, stage=stage)
+    except _bad_input_errors() as err:
+        _fail(str(err))
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "compare.json", result.to_json())
+    typer.echo(result.summary())
+    typer.echo(f"wrote {out / 'compare.json'}")
+
+
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,

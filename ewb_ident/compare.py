@@ -1,0 +1,268 @@
+"""Hardware-change refit: what changed between two sets of traces, and what it means.
+
+The OLD and NEW traces are each fitted (whole chain by default), every free parameter
+shared within a set and free to differ between them; the start angle stays per trace.
+For each parameter the change ``delta = new - old`` gets a standard error from the two
+fits' covariances (independent recordings), a 90 % interval, and the probability that it
+changed by more than a practical tolerance, ``P(|delta| > tol)``, under the fits'
+Gaussian (Laplace) approximation of the posterior. A parameter is reported as changed
+when that probability exceeds 0.95.
+
+What the change means for the brake: the brake torque at the seed's operating point
+(the seed's open-loop apply, :data:`OPERATING_POINT`) is simulated with the old and the
+new parameters, and its change is given with an uncertainty propagated from both fits.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .fit import FitResult, fit
+from .params import MODEL_PARAMS, PARAMS, EWBParams
+from .simulate import simulate_chain
+from .traces import Trace
+
+#: The seed's operating point: its open-loop apply, 4 V for 0.25 s from rest (then 0 V),
+#: logged at 200 Hz; the torque is read while the brake holds, at t = 1.0 s.
+OPERATING_POINT = {"v_apply_V": 4.0, "t_apply_s": 0.25, "t_read_s": 1.0, "rate_hz": 200.0}
+
+#: A change smaller than this fraction of the old value (at least of the parameter's
+#: scale, for signed parameters near zero) is treated as no practical change.
+DEFAULT_TOLERANCE = 0.01
+
+CHANGED = 0.95
+
+
+def _phi(z: float) -> float:
+    return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
+
+
+@dataclass(frozen=True)
+class ParameterChange:
+    """The change of one parameter between OLD and NEW (SI units)."""
+
+    name: str
+    old: float
+    new: float
+    delta: float
+    stderr: float | None
+    low90: float | None
+    high90: float | None
+    tolerance: float
+    p_changed: float | None
+
+    @property
+    def changed(self) -> bool:
+        """Whether ``P(|delta| > tolerance)`` exceeds 0.95."""
+        return self.p_changed is not None and self.p_changed > CHANGED
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Outcome of :func:`compare`."""
+
+    old: FitResult
+    new: FitResult
+    changes: tuple[ParameterChange, ...]
+    torque_old: float
+    torque_new: float
+    torque_delta_stderr: float | None
+
+    def summary(self) -> str:
+        """Plain-language summary: what changed, by how much, and what it means."""
+        lines = []
+        moved = [c for c in self.changes if c.changed]
+        if not moved:
+            lines.append("No parameter changed beyond its tolerance with probability > 0.95.")
+        for c in moved:
+            rel = f" ({100 * c.delta / c.old:+.1f} %)" if c.old else ""
+            unit = PARAMS[c.name].unit
+            lines.append(
+                f"{c.name} changed by {c.delta:+.4g} {unit}{rel}, 90 % interval "
+                f"[{c.low90:+.4g}, {c.high90:+.4g}]; P(|change| > {c.tolerance:.3g}) = "
+                f"{c.p_changed:.3f}"
+            )
+        dT = self.torque_new - self.torque_old
+        se = f" +- {self.torque_delta_stderr:.3g}" if self.torque_delta_stderr else ""
+        lines.append(
+            f"Brake torque at the seed's operating point (4 V apply, 0.25 s, holding): "
+            f"{self.torque_old:.1f} -> {self.torque_new:.1f} N*m ({dT:+.1f}{se} N*m, "
+            f"{100 * dT / self.torque_old:+.1f} %)."
+        )
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON document (plain numbers, null where a value does not exist)."""
+        return {
+            "changes": {
+                c.name: {
+                    "old": c.old,
+                    "new": c.new,
+                    "delta": c.delta,
+                    "stderr": c.stderr,
+                    "low90": c.low90,
+                    "high90": c.high90,
+                    "tolerance": c.tolerance,
+                    "p_changed": c.p_changed,
+                    "changed": c.changed,
+                }
+                for c in self.changes
+            },
+            "torque_at_operating_point": {
+                "old_Nm": self.torque_old,
+                "new_Nm": self.torque_new,
+                "delta_Nm": self.torque_new - self.torque_old,
+                "delta_stderr_Nm": self.torque_delta_stderr,
+                "operating_point": OPERATING_POINT,
+            },
+            "old": {"traces": list(self.old.trace_names), "converged": self.old.converged},
+            "new": {"traces": list(self.new.trace_names), "converged": self.new.converged},
+            "summary": self.summary(),
+            "method": (
+                "separate least-squares fits of OLD and NEW; delta +- standard error from "
+                "both covariances; P(changed) under the Gaussian approximation"
+            ),
+        }
+
+
+def _torque(values: jnp.ndarray, names: Sequence[str], base: EWBParams) -> jnp.ndarray:
+    op = OPERATING_POINT
+    dt = 1.0 / op["rate_hz"]
+    n = int(round(op["t_read_s"] / dt)) + 1
+    t = jnp.arange(n) * dt
+    V = jnp.where(t < op["t_apply_s"], op["v_apply_V"], 0.0)
+    p = base.replace(**{k: values[j] for j, k in enumerate(names)})
+    return simulate_chain(p, V, dt, 0.0, 0.15)["torque_Nm"][-1]
+
+
+def _covariance(result: FitResult, names: Sequence[str]) -> np.ndarray:
+    idx = [result.corr_names.index(n) for n in names]
+    se = np.array([result.stderr[n] or 0.0 for n in names])
+    return result.corr[np.ix_(idx, idx)] * np.outer(se, se)
+
+
+def compare(
+    old: Sequence[Trace],
+    new: Sequence[Trace],
+    *,
+    stage: str = "chain",
+    free: Sequence[str] | None = None,
+    tolerance: Mapping[str, float] | None = None,
+) -> Comparison:
+    """Fit OLD and NEW traces and report which parameters changed.
+
+    Two passes. First OLD and NEW are fitted separately: every parameter may differ, and
+    the changes that exceed their tolerance with probability > 0.95 are screened. Then,
+    when each side is one trace, both are fitted jointly with only the screened
+    parameters (and the contact point ``c``, which a pad change moves) per trace and
+    every other parameter shared: the shared ones are then pinned down by both
+    recordings, and the changes come with tighter, joint intervals.
+
+    Parameters
+    ----------
+    old, new
+        Traces recorded before and after the hardware change.
+    stage
+        Stage of the fits (default the whole chain).
+    free
+        Parameters to vary (default: the stage's defaults).
+    tolerance
+        Practical tolerance per parameter, SI units (default: 1 % of the old value, at
+        least 1 % of the parameter's scale for signed parameters near zero).
+    """
+    fo = fit(list(old), stage=stage, free=free)
+    fn = fit(list(new), stage=stage, free=free)
+    names = [n for n in fo.free if n in MODEL_PARAMS and n not in fo.per_trace]
+    cov_o, cov_n = _covariance(fo, names), _covariance(fn, names)
+    screened = _changes(names, fo.values, fn.values, cov_o.diagonal() + cov_n.diagonal(), tolerance)
+    base = EWBParams()
+    xo = np.array([fo.values[n] for n in names])
+    xn = np.array([fn.values[n] for n in names])
+    go, gn = _torque_gradient(xo, names, base), _torque_gradient(xn, names, base)
+    var_T = float(go @ cov_o @ go + gn @ cov_n @ gn)
+    T_o, T_n = float(_torque(xo, names, base)), float(_torque(xn, names, base))
+    if len(old) != 1 or len(new) != 1:
+        return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+
+    # Joint refit: screened parameters (and c) per trace, the rest shared.
+    moving = [c.name for c in screened if c.changed or c.name == "c"]
+    joint = fit([old[0], new[0]], stage=stage, free=fo.free, per_trace=[*moving, "theta0_deg"])
+    if not joint.converged:
+        return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+    jn = list(joint.corr_names)
+    se = np.array([joint.stderr[n] or 0.0 for n in jn])
+    cov = joint.corr * np.outer(se, se)
+    refined = []
+    for c in screened:
+        if c.name not in moving:
+            refined.append(c)
+            continue
+        i, j = jn.index(f"{c.name}[0]"), jn.index(f"{c.name}[1]")
+        var = cov[i, i] + cov[j, j] - 2 * cov[i, j]
+        v0, v1 = (float(getattr(p, c.name)) for p in joint.params)
+        refined += _changes([c.name], {c.name: v0}, {c.name: v1}, [var], tolerance)
+    # Torque change and its uncertainty through the joint covariance.
+    model = [n for n in jn if n.split("[")[0] in MODEL_PARAMS]
+    x = np.array([float(joint.u[jn.index(n)]) for n in model])  # unconstrained
+    dT = jax.grad(lambda u: _torque_delta(u, model, base))(jnp.asarray(x))
+    idx = [jn.index(n) for n in model]
+    cov_u = joint.corr[np.ix_(idx, idx)] * np.outer(
+        *(2 * [np.array([_sd_u(joint, n) for n in model])])
+    )
+    T_o, T_n = (
+        float(_torque(np.array([p.as_dict()[n] for n in names]), names, base)) for p in joint.params
+    )
+    var_T = float(np.asarray(dT) @ cov_u @ np.asarray(dT))
+    return Comparison(joint, joint, tuple(refined), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+
+
+def _changes(names, old, new, variances, tolerance) -> list[ParameterChange]:
+    out = []
+    for name, var in zip(names, variances, strict=True):
+        d = new[name] - old[name]
+        se = math.sqrt(var) if var > 0 else None
+        info = PARAMS[name]
+        tol = (tolerance or {}).get(name)
+        if tol is None:
+            floor = info.scale if info.transform == "affine" else 0.0
+            tol = DEFAULT_TOLERANCE * max(abs(old[name]), floor)
+        if se:
+            p = _phi((d - tol) / se) + _phi((-d - tol) / se)
+            lo, hi = d - 1.645 * se, d + 1.645 * se
+        else:
+            p, lo, hi = None, None, None
+        out.append(ParameterChange(name, old[name], new[name], d, se, lo, hi, tol, p))
+    return out
+
+
+def _sd_u(result: FitResult, name: str) -> float:
+    """Standard error of a coordinate in the unconstrained space (from the SI one)."""
+    j = result.corr_names.index(name)
+    info = PARAMS[name.split("[")[0]]
+    se = result.stderr[name] or 0.0
+    return se / abs(float(info.dp_du(float(result.u[j]))))
+
+
+def _torque_gradient(x: np.ndarray, names, base) -> np.ndarray:
+    return np.asarray(jax.grad(_torque)(jnp.asarray(x), names, base))
+
+
+def _torque_delta(u: jnp.ndarray, names: Sequence[str], base: EWBParams) -> jnp.ndarray:
+    """Torque(new) - torque(old) from a joint fit's coordinates ``name`` / ``name[k]``."""
+    sides = []
+    for k in (0, 1):
+        vals = {}
+        for j, n in enumerate(names):
+            plain, _, tag = n.partition("[")
+            if not tag or tag == f"{k}]":
+                vals[plain] = PARAMS[plain].to_physical(u[j])
+        keys = list(vals)
+        sides.append(_torque(jnp.stack([vals[q] for q in keys]), keys, base))
+    return sides[1] - sides[0]
