@@ -341,19 +341,24 @@ def study(
     from rich.progress import Progress
 
     from .outputs import atomic_write
-    from .studies import StudyError, load_study, run_study, summarise
+    from .studies import StudyError, load_study, run_script, run_study, summarise
 
     try:
         spec = load_study(definition)
     except StudyError as err:
         _fail(str(err))
-    with Progress(transient=True) as bar:
-        job = bar.add_task(f"study {spec.name}", total=len(spec.cases()))
-        table = run_study(
-            spec, scheduler=scheduler, progress=lambda done, total: bar.update(job, completed=done)
-        )
-    report = summarise(spec, table)
     out.mkdir(parents=True, exist_ok=True)
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"study {spec.name}", total=len(spec.cases()) or None)
+
+        def progress(done, total):
+            bar.update(job, completed=done, total=total)
+
+        if spec.script is not None:
+            table, report = run_script(spec, out, progress=progress)
+        else:
+            table = run_study(spec, scheduler=scheduler, progress=progress)
+            report = summarise(spec, table)
     atomic_write(
         [
             (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),

@@ -1,6 +1,8 @@
 """Batch studies: many synthetic cases from a TOML definition, one tidy result table.
 
-A study file names a task and a grid of rig settings::
+A study file names a task and a grid of rig settings (or, for a study that is not a grid
+of cases, a script beside it: ``[study] script = "seed_reproduction.py"``, whose
+``run(out_dir, progress)`` returns the table and the report)::
 
     [study]
     name = "recovery_vs_noise_rate"
@@ -74,6 +76,7 @@ class Study:
     grid: dict[str, list[Any]]
     options: dict[str, Any]
     path: Path | None = None
+    script: Path | None = None
 
     def cases(self) -> list[Case]:
         """Every case, in a fixed order (grid points, then repeats)."""
@@ -103,6 +106,20 @@ def load_study(path: str | Path) -> Study:
     except tomllib.TOMLDecodeError as err:
         raise StudyError(f"{path}: not valid TOML ({err}); fix the syntax") from None
     head = doc.get("study", {})
+    if "script" in head:
+        script = (path.parent / head["script"]).resolve()
+        if not script.is_file():
+            raise StudyError(f"{path}: [study] script {head['script']!r} not found beside it")
+        return Study(
+            name=str(head.get("name", path.stem)),
+            task="script",
+            repeats=1,
+            seed=int(head.get("seed", 0)),
+            grid={},
+            options=dict(doc.get("task", {})),
+            path=path,
+            script=script,
+        )
     task = head.get("task", "fit")
     if task not in TASKS:
         raise StudyError(f"{path}: [study] task {task!r} is unknown; use one of {sorted(TASKS)}")
@@ -209,6 +226,16 @@ def run_case(case: Case) -> list[dict[str, Any]]:
         return [label | {"error": None} | row for row in rows]
     except Exception as err:  # a failed case is a result of the study, not a crash
         return [label | {"error": f"{type(err).__name__}: {err}"}]
+
+
+def run_script(study: Study, out_dir: Path, progress=None):
+    """Run a script study: its ``run(out_dir, progress)`` returns (table, Markdown)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"_study_{study.name}", study.script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.run(Path(out_dir), progress=progress, **study.options)
 
 
 def run_study(
