@@ -156,12 +156,14 @@ def load_study(path: str | Path) -> Study:
 # ----------------------------------------------------------------------------- tasks
 
 
-def make_trace(case: Case):
-    """The synthetic trace and truth of a case (the rig, seeded by the case)."""
+def make_trace(case: Case, params=None):
+    """The synthetic trace and truth of a case (the rig, seeded by the case); ``params``
+    (a :class:`~ewb_ident.rig.RigParams`) overrides the case's rig unit."""
     from . import rig
 
     setting = case.rig
-    params = rig.RigParams()
+    if params is None:
+        params = rig.RigParams()
     if setting["vary"] > 0:
         params = rig.vary(params, np.random.default_rng([case.seed, 1]), rel=setting["vary"])
     base = rig.SensorNoise()
@@ -210,8 +212,67 @@ def fit_task(case: Case) -> list[dict[str, Any]]:
     return rows
 
 
+def compare_task(case: Case) -> list[dict[str, Any]]:
+    """Hardware-change refit: the same rig unit before and after a planted change.
+
+    Task options: ``shift`` (added, SI units, e.g. ``{c = 5e-5}``) and ``scale``
+    (multiplied, e.g. ``{R = 1.2}``); one row per parameter with the true change.
+    """
+    from . import rig
+    from .compare import compare
+
+    opts = dict(case.options)
+    shift, scale = opts.pop("shift", {}), opts.pop("scale", {})
+    old_trace, truth = make_trace(case)
+    params = rig.RigParams(**{k: v for k, v in truth["params"].items() if k in _RIG_FIELDS})
+    changed = {k: getattr(params, k) + v for k, v in shift.items()}
+    changed |= {k: getattr(params, k) * v for k, v in scale.items()}
+    new_case = dataclasses.replace(case, seed=case.seed + 500_000, rig=case.rig | {"vary": 0.0})
+    new_trace, _ = make_trace(new_case, params=dataclasses.replace(params, **changed))
+    result = compare([old_trace], [new_trace], **opts)
+    rows = []
+    for c in result.changes:
+        true = changed.get(c.name, getattr(params, c.name)) - getattr(params, c.name)
+        rows.append(
+            {
+                "parameter": c.name,
+                "estimate": c.delta,
+                "truth": true,
+                "stderr": c.stderr,
+                "rel_error": (c.delta - true) / true if true else None,
+                "z": (c.delta - true) / c.stderr if c.stderr else None,
+                "reported_changed": c.changed,
+                "planted": c.name in changed,
+                "p_changed": c.p_changed,
+                "converged": result.old.converged and result.new.converged,
+            }
+        )
+    return rows
+
+
+_RIG_FIELDS = {
+    "R",
+    "L",
+    "kb",
+    "kT",
+    "M",
+    "v",
+    "p2",
+    "p1",
+    "p0",
+    "F_rt",
+    "a",
+    "c",
+    "b",
+    "mu",
+    "r_eff_m",
+}
+
 #: Tasks a study can run on each case: ``task(case) -> list of row dicts``.
-TASKS: dict[str, Callable[[Case], list[dict[str, Any]]]] = {"fit": fit_task}
+TASKS: dict[str, Callable[[Case], list[dict[str, Any]]]] = {
+    "fit": fit_task,
+    "compare": compare_task,
+}
 
 
 def run_case(case: Case) -> list[dict[str, Any]]:
@@ -291,10 +352,15 @@ def summarise(study: Study, table) -> str:
         return "\n".join(lines) + "\n"
     varied = [k for k, v in study.grid.items() if len(v) > 1]
     keys = [*varied, "parameter"]
-    ok = ok.assign(covered=(ok["z"].abs() <= 1.645).where(ok["z"].notna()))
+    ok = ok.assign(covered=(ok["z"].abs() <= 1.645).where(ok["z"].notna()).astype(float))
+    extra = {}
+    if "reported_changed" in ok:
+        ok = ok.assign(reported_changed=ok["reported_changed"].astype(float))
+        extra["reported_changed_pct"] = ("reported_changed", lambda s: 100 * float(s.mean()))
     agg = ok.groupby(keys, dropna=False).agg(
         n=("estimate", "size"),
         converged=("converged", "mean"),
+        **extra,
         median_rel_error_pct=("rel_error", lambda s: 100 * float(np.median(s))),
         rms_rel_error_pct=("rel_error", lambda s: 100 * float(np.sqrt(np.mean(np.square(s))))),
         coverage_90_pct=("covered", lambda s: 100 * float(s.mean())),
