@@ -207,10 +207,7 @@ def _motor_states(
             return a + _mv(P2, B_tau * (tau(a) - tau(s)))
 
     def step(s, V):
-        out = s
-        for _ in range(n_sub):
-            s = substep(s, V)
-        return s, out
+        return jax.lax.fori_loop(0, n_sub, lambda _, s: substep(s, V), s), s
 
     _, states = jax.lax.scan(step, s0, V)
     return states
