@@ -374,49 +374,43 @@ def report(
     traces: Traces,
     out: OutDir,
     stage: Annotated[str, typer.Option(help="Stage of the least-squares fit.")] = "chain",
+    posterior: Annotated[
+        bool, typer.Option("--posterior/--no-posterior", help="Run MCMC for 90 % intervals.")
+    ] = True,
+    diagnosis: Annotated[
+        bool,
+        typer.Option("--diagnose/--no-diagnose", help="Look for physics the model leaves out."),
+    ] = True,
+    seed: Annotated[int, typer.Option(help="Seed of the MCMC.")] = 0,
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
 ) -> None:
-    """Validation report: OUT/index.html (self-contained) and PNG figures."""
+    """Validation report: OUT/index.html (self-contained) and PNG figures: data, fit,
+    bell curve, parameters with 90 % intervals, errors beside the seed's, MCMC
+    diagnostics, and the diagnosis of missing physics."""
     from .fit import fit as run_fit
     from .validation_report import build_report, write_report
 
+    post = diag = None
     try:
         trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check)
         result = run_fit(trs, stage=stage)
+        if posterior:
+            from .posterior import sample as run_sample
+
+            typer.echo("sampling the posterior (emcee, two ensembles) ...")
+            post = run_sample(trs, stage=stage, seed=seed)
+        if diagnosis and len(trs) == 1:
+            from .diagnose import diagnose as run_diagnose
+
+            typer.echo("diagnosing missing physics ...")
+            diag = run_diagnose(trs[0])
     except _bad_input_errors() as err:
         _fail(str(err))
-    page, figures = build_report(trs, result)
+    page, figures = build_report(trs, result, posterior=post, diagnosis=diag)
     path = write_report(out, page, figures)
     typer.echo(f"wrote {path} ({len(figures)} figures)")
-
-
-@app.command()
-def compare(
-    old: Annotated[list[Path], typer.Option("--old", help="Trace before the change (repeat).")],
-    new: Annotated[list[Path], typer.Option("--new", help="Trace after the change (repeat).")],
-    out: OutDir,
-    stage: Annotated[str, typer.Option(help="Stage of the fits.")] = "chain",
-    mapping: Mapping = None,
-    fill_gaps: FillGaps = False,
-    no_unit_check: NoUnitCheck = False,
-) -> None:
-    """Hardware-change refit: which parameters changed between OLD and NEW traces, by how
-    much, how probably, and what it means for brake torque; writes OUT/compare.json."""
-    from .compare import compare as run_compare
-    from .outputs import write_json
-
-    try:
-        before = _read(old, (stage,), mapping, fill_gaps, no_unit_check)
-        after = _read(new, (stage,), mapping, fill_gaps, no_unit_check)
-        result = run_compare(before, after, stage=stage)
-    except _bad_input_errors() as err:
-        _fail(str(err))
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "compare.json", result.to_json())
-    typer.echo(result.summary())
-    typer.echo(f"wrote {out / 'compare.json'}")
 
 
 @app.callback(invoke_without_command=True)

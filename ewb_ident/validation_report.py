@@ -374,21 +374,34 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
         )
         + "</div>"
     )
-    diag = {
-        k: v for k, v in post.items() if k not in ("params",) and not isinstance(v, dict | list)
-    }
-    if diag:
-        out.append(_table(["diagnostic", "value"], [[_e(k), _num(v)] for k, v in diag.items()]))
+    rows = []
+    for name, p in post["params"].items():
+        if isinstance(p, dict) and p.get("mean") is not None:
+            rows.append(
+                [_e(name), _num(p.get("ess"), 4), _num(p.get("r_hat"), 4), _num(p.get("sd"), 3)]
+            )
+    out.append(_table(["parameter", "ESS", "R-hat (between ensembles)", "posterior sd"], rows))
+    diag = post.get("diagnostics") or {}
+    flat = {k: v for k, v in diag.items() if isinstance(v, int | float | str | bool)}
+    if flat:
+        out.append(_table(["diagnostic", "value"], [[_e(k), _num(v)] for k, v in flat.items()]))
     for w in post.get("warnings", []) or []:
         out.append(f'<div class="warn">{_e(w)}</div>')
     for item in post.get("identifiability", []) or []:
         text = item.get("statement") if isinstance(item, dict) else item
         if text:
             out.append(f'<div class="warn">{_e(text)}</div>')
-    pair = getattr(posterior, "pair_plot_png", None)
-    if callable(pair):
-        figures["pair.png"] = pair()
+    if hasattr(posterior, "pair_plot"):
+        figures["pair.png"] = _png(posterior.pair_plot())
         out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
+        names, corr = posterior.correlation()
+        out.append("<p>Posterior correlation of a, b, c, mu:</p>")
+        out.append(
+            _table(
+                ["", *names],
+                [[_e(n), *(_num(v, 3) for v in row)] for n, row in zip(names, corr, strict=True)],
+            )
+        )
     return "".join(out)
 
 
