@@ -365,7 +365,9 @@ def summarise(study: Study, table) -> str:
         rms_rel_error_pct=("rel_error", lambda s: 100 * float(np.sqrt(np.mean(np.square(s))))),
         coverage_90_pct=("covered", lambda s: 100 * float(s.mean())),
     )
+    advice = _design_advice(study, ok)
     lines += [
+        *advice,
         "",
         "Per setting and parameter: median and RMS relative error of the estimate, "
         "and how often the estimate +- 1.645 standard errors (a nominal 90 % interval) "
@@ -374,6 +376,29 @@ def summarise(study: Study, table) -> str:
         markdown_table(agg.reset_index()),
     ]
     return "\n".join(lines) + "\n"
+
+
+def _design_advice(study: Study, ok) -> list[str]:
+    """Experiment-design advice when the input profile is varied: which profile pins down
+    a, b, c and mu best (smallest median relative standard error)."""
+    if len(study.grid.get("profile", [])) < 2 or "stderr" not in ok:
+        return []
+    sub = ok[ok["parameter"].isin(["a", "b", "c", "mu"]) & ok["stderr"].notna()]
+    if sub.empty:
+        return []
+    rel = (sub["stderr"] / sub["truth"].abs()).groupby([sub["profile"], sub["parameter"]]).median()
+    table = rel.unstack("parameter") * 100
+    best = table.mean(axis=1).idxmin()
+    lines = [
+        "",
+        "## Experiment-design advice",
+        "",
+        f"Median relative standard error (%) of a, b, c and mu by input profile; the "
+        f"profile that identifies them best here is **{best}**.",
+        "",
+        markdown_table(table.reset_index()),
+    ]
+    return lines
 
 
 def markdown_table(frame) -> str:
