@@ -11,7 +11,7 @@ of cases, a script beside it: ``[study] script = "seed_reproduction.py"``, whose
     seed = 0
 
     [rig]                   # any key may be a list: the grid is their product
-    profile = "position"
+    profile = "position"    # steps, position, staircase, or through_c (position past c)
     sample_rate_hz = [100, 200, 1000]
     noise_scale = [0.5, 1.0, 2.0]
     vary = 0.05             # relative spread of rig parameters between cases
@@ -170,9 +170,14 @@ def make_trace(case: Case, params=None):
     noise = rig.SensorNoise(
         **{f.name: getattr(base, f.name) * setting["noise_scale"] for f in dataclasses.fields(base)}
     )
+    profile, extra = setting["profile"], {}
+    if profile == "through_c":  # position control to x = c + 0.3 a: past full clamping
+        profile = "position"
+        extra["target_deg"] = rig.theta_for_gap(params, params.c + 0.3 * params.a)
     return rig.simulate_rig(
         params,
-        profile=setting["profile"],
+        profile=profile,
+        **extra,
         sample_rate_hz=float(setting["sample_rate_hz"]),
         duration_s=float(setting["duration_s"]),
         effects=tuple(setting["effects"]),
@@ -191,10 +196,13 @@ def fit_task(case: Case) -> list[dict[str, Any]]:
     result = fit(trace, **case.options)
     seconds = time.perf_counter() - t0
     rows = []
+    kT_scale = 1.0 if "kT" in result.free else result.values["kT"] / truth["params"]["kT"]
     for name in result.free:
         if name not in truth["params"]:
             continue
         est, true = result.values[name], truth["params"][name]
+        if name in ("M", "v"):  # only M/kT and v/kT are identified with kT held fixed
+            true *= kT_scale
         se = result.stderr.get(name)
         rows.append(
             {
