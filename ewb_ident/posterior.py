@@ -26,8 +26,10 @@ white noise). It is a plug-in estimate, not sampled.
 Sampler and diagnostics
 -----------------------
 ``emcee.EnsembleSampler(vectorize=True)`` on the log-probability jit-compiled and
-``vmap``-ed over walkers; differential-evolution moves (80 % DE, 20 % DE snooker: about
-2.5x shorter autocorrelation times than the stretch move on this model). At least two
+``vmap``-ed over walkers; differential-evolution moves (``DEMove``: about 2.5x shorter
+autocorrelation times than the default stretch move on this model; not
+``DESnookerMove``, which in emcee <= 3.1.6 samples a Gaussian with 40 % too little
+variance, fixed upstream in dfm/emcee#531; the calibration study found it). At least two
 independent ensembles (own seeds, own overdispersed starts: twice the Laplace sd at the
 least-squares optimum) run side by side. Per ensemble the integrated autocorrelation
 time ``tau`` (emcee's estimator, averaged over walkers) sets burn-in (3 tau) and
@@ -58,7 +60,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import STAGES, FitError, FitResult, _jacobian, _Problem, fit
+from .fit import STAGES, FitError, FitResult, _Problem, fit
 from .params import PARAMS, STAGE_PARAMS, ParamInfo
 from .priors import Prior, load_priors
 from .simulate import EXPONENTIAL, Integrator
@@ -77,6 +79,7 @@ STUCK = 0.2  #: a walker accepting less than this fraction of its ensemble's med
 CHUNK = 100  #: steps between progress reports and convergence checks
 PRIOR_LIKE = 0.5  #: posterior sd / prior sd above which a parameter is "not identified"
 RIDGE = 0.95  #: |posterior correlation| above which two parameters are named as a ridge
+POOR_FIT = 3.0  #: residual sd / sensor noise above which the least-squares start is retried
 
 #: What measurement or input profile identifies each parameter (for the statements).
 HINTS: dict[str, str] = {
@@ -86,11 +89,12 @@ HINTS: dict[str, str] = {
     "c": "an apply that drives the piston past full clamping (x past c)",
     "F_rt": "an apply to saturation (x at c), where the force levels off at F_rt",
     "mu": "a recorded disc torque (torque_Nm) together with the clamping force",
-    "R": "a recorded motor current (current_A)",
+    "R": "voltage steps of several sizes and lengths with current_A recorded (the "
+    "steady-state current fixes R, the acceleration M)",
     "L": "current_A logged at 1 kHz or more (the armature pole R/L is 200-1000 1/s)",
     "kb": "voltage steps of several sizes with theta_deg recorded (profile 'steps')",
     "kT": "a known load torque, or current with speed and acceleration",
-    "M": "fast voltage steps (the acceleration phase) with theta_deg recorded",
+    "M": "fast voltage steps (the acceleration phase) with theta_deg and current_A recorded",
     "v": "long voltage steps that reach a steady speed, with theta_deg recorded",
     "p2": "x_m recorded over the whole stroke, from rest to full clamping",
     "p1": "x_m recorded over the whole stroke, from rest to full clamping",
@@ -323,20 +327,25 @@ def _build(fits: Sequence[FitResult], priors: Mapping[str, Prior], noise_model: 
 
 
 def _starts(lp, fits, u0, n_walkers, rngs) -> list[np.ndarray]:
-    """Overdispersed starting walkers around ``u0``: the Laplace approximation of the
-    least-squares problems (``J^T J`` at the optimum), its sd times OVERDISPERSION."""
-    blocks = []
+    """Overdispersed starting walkers around ``u0``: the least-squares fits' Laplace
+    approximation (their correlation and standard errors, in u), its sd x OVERDISPERSION."""
+    sd, blocks = [], []
     for f in fits:
-        J = np.asarray(_jacobian(f.problem, jnp.asarray(f.u), f.data))
-        blocks.append(J.T @ J)
-    H = np.zeros((u0.size, u0.size))
+        blocks.append(np.where(np.isfinite(f.corr), f.corr, 0.0) if f.corr.size else f.corr)
+        for n, u in zip(f.corr_names, f.u, strict=True):
+            se = f.stderr.get(n)
+            slope = abs(float(PARAMS[n.split("[")[0]].dp_du(u)))
+            sd.append(se / slope if se is not None and slope > 0 and np.isfinite(se) else 1.0)
+    C = np.zeros((u0.size, u0.size))
     i = 0
     for B in blocks:
-        H[i : i + B.shape[0], i : i + B.shape[0]] = B
-        i += B.shape[0]
-    ok = np.all(np.isfinite(H))
-    lam, V = np.linalg.eigh(H) if ok else (np.ones(u0.size), np.eye(u0.size))
-    L = V / np.sqrt(np.maximum(lam, 1.0))  # never wider than one unit of the O(1) u
+        C[i : i + len(B), i : i + len(B)] = B
+        i += len(B)
+    sd_u = np.minimum(np.asarray(sd), 1.0)
+    cov = C * np.outer(sd_u, sd_u)
+    lam, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    # Never wider than one unit of the O(1) u; never flat (emcee needs a full-rank start).
+    L = V * np.sqrt(np.clip(lam, 1e-8 * max(float(np.max(lam)), 1e-12), 1.0))
     starts = []
     for rng in rngs:
         p = u0 + OVERDISPERSION * rng.standard_normal((n_walkers, u0.size)) @ L.T
@@ -365,23 +374,25 @@ def _rhat(per_ensemble: Sequence[np.ndarray]) -> float:
     """Rank-normalised split R-hat between ensembles; each is (steps, walkers), pooled
     over walkers in time order so that arviz's split halves are early and late draws."""
     az = _arviz()
-    value = float(az.rhat(np.stack([x.reshape(-1) for x in per_ensemble])))
-    return value if math.isfinite(value) else 1.0
+    with np.errstate(all="ignore"):
+        value = float(az.rhat(np.stack([x.reshape(-1) for x in per_ensemble])))
+    return value if math.isfinite(value) else math.inf  # e.g. a parameter that never moved
 
 
 def _diagnose(chains: list[np.ndarray], phys, min_ess: float) -> dict[str, Any]:
     """Burn-in, thinning, tau, ESS and R-hat from the chains (steps, walkers, params)."""
     N, W, _ = chains[0].shape
-    tau0 = np.max([_tau(phys(c[N // 2 :])) for c in chains])
-    burn = int(min(math.ceil(BURN_TAUS * tau0), N // 2))
-    post = [phys(c[burn:]) for c in chains]
-    tau = np.stack([_tau(p) for p in post])  # (E, D)
+    with np.errstate(all="ignore"):
+        tau0 = np.nan_to_num(np.max([_tau(phys(c[N // 2 :])) for c in chains]), nan=N)
+        burn = int(min(math.ceil(BURN_TAUS * tau0), N // 2))
+        post = [phys(c[burn:]) for c in chains]
+        tau = np.nan_to_num(np.stack([_tau(p) for p in post]), nan=np.inf)  # (E, D)
     n_post = N - burn
     ess = np.sum(W * n_post / tau, axis=0)
     rhat = np.array([_rhat([p[:, :, j] for p in post]) for j in range(tau.shape[1])])
     return {
         "burn": burn,
-        "thin": max(1, int(0.5 * np.min(tau))),
+        "thin": max(1, int(0.5 * min(np.min(tau), N))),
         "tau": tau,
         "ess": ess,
         "rhat": rhat,
@@ -469,13 +480,7 @@ class PosteriorResult:
 
     def correlation(self, names: Iterable[str] | None = None) -> tuple[list[str], np.ndarray]:
         """Posterior correlation matrix of sampled parameters (default: a, b, c, mu)."""
-        names = [n for n in (names or CONTRACT_PARAMS) if n in self.draws]
-        if not names:
-            return [], np.zeros((0, 0))
-        X = np.stack([self.draws[n].reshape(-1) for n in names])
-        sd = X.std(axis=1)
-        C = np.corrcoef(X) if np.all(sd > 0) else np.eye(len(names))
-        return names, np.atleast_2d(np.where(np.isfinite(C), C, 0.0))
+        return _corr([n for n in (names or CONTRACT_PARAMS) if n in self.draws], self.draws)
 
     def to_summary_json(self) -> dict[str, Any]:
         """The contract ``summary.json`` document (plain JSON; null where no value)."""
@@ -543,7 +548,7 @@ class PosteriorResult:
         self, names: Iterable[str] | None = None, truth: Mapping[str, float] | None = None
     ):
         """A matplotlib Figure: pairwise scatter and marginal histograms (default a, b,
-        c, mu, those sampled), the 90 % HDI dashed, ``truth`` (if given) in red."""
+        c, mu, those sampled), the HDIs dashed, ``truth`` (if given) in red."""
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
         from matplotlib.ticker import MaxNLocator
@@ -588,17 +593,8 @@ def _finite(x: float) -> float | None:
 def _physical(names: Sequence[str], u: np.ndarray) -> np.ndarray:
     """Unconstrained -> physical values (NumPy), column by column."""
     u = np.asarray(u, float)
-    out = np.empty_like(u)
-    for j, n in enumerate(names):
-        info = PARAMS[n.split("[")[0]]
-        x = u[..., j]
-        if info.transform == "log":
-            out[..., j] = info.ref * np.exp(x)
-        elif info.transform == "logit":
-            out[..., j] = info.lower + (info.upper - info.lower) / (1.0 + np.exp(-x))
-        else:
-            out[..., j] = info.ref + info.scale * x
-    return out
+    cols = [PARAMS[n.split("[")[0]].to_physical(u[..., j]) for j, n in enumerate(names)]
+    return np.stack([np.asarray(c, float) for c in cols], axis=-1)
 
 
 # ----------------------------------------------------------------------------- sample
@@ -704,17 +700,19 @@ def _sample(
                 f"parameter(s) {', '.join(bad)} belong to none of the stages "
                 f"{', '.join(stages)}; their parameters are {', '.join(sorted(allowed))}"
             )
-    fits = []
+    fits, notes = [], []
     for s in stages:
         f_s = None if free_l is None else [n for n in free_l if n in STAGE_PARAMS[s]]
         if f_s == []:
             continue
-        fits.append(
-            fit(traces, stage=s, free=f_s, per_trace=per_trace, fixed=fixed, integrator=integrator)
-        )
+        kw = dict(free=f_s, per_trace=per_trace, fixed=fixed, integrator=integrator)
+        f = fit(traces, stage=s, **kw)
+        if s == "chain" and _poor(f):
+            f = _restart_chain(traces, f, kw, notes)
+        fits.append(f)
     if not fits or not any(f.corr_names for f in fits):
         raise SampleError("nothing to sample: no free parameter in the given stages")
-    notes = [
+    notes += [
         f"least-squares start ({f.stage}): {w}" for f in fits if not f.converged for w in f.warnings
     ]
     t_fit = time.perf_counter()
@@ -743,7 +741,7 @@ def _sample(
 
     samplers = []
     for e in range(n_ensembles):
-        moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+        moves = emcee.moves.DEMove()
         smp = emcee.EnsembleSampler(W, D, logp, vectorize=True, moves=moves)
         state = np.random.RandomState(int(seq[n_ensembles + e].generate_state(1)[0]))
         smp.random_state = state.get_state()
@@ -764,7 +762,7 @@ def _sample(
             diag = _diagnose(chains, phys, min_ess)
             if diag["ok"] or done >= max_steps:
                 break
-            tau = float(np.max(diag["tau"]))
+            tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], done)))
             need = diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (n_ensembles * W))
             target = int(min(max_steps, max(1.2 * need, done + max(CHUNK, done // 2))))
     t_sample = time.perf_counter()
@@ -780,6 +778,50 @@ def _sample(
         "summary_s": time.perf_counter() - t_sample,
     }
     return dataclasses.replace(result, timing=timing)
+
+
+def _poor(f: FitResult) -> bool:
+    """A fit whose residuals are far above the sensor noise on some channel: a local
+    minimum of the least squares (or physics the model leaves out)."""
+    return any(
+        f.sigma[k][ch] > POOR_FIT * max(f.noise[k][ch], 1e-300)
+        for k in range(len(f.sigma))
+        for ch in f.sigma[k]
+    )
+
+
+def _restart_chain(traces, first: FitResult, kw: dict, notes: list[str]) -> FitResult:
+    """The whole chain again, from the teacher-forced fits of the gap, force and torque
+    stages; the better of the two fits (lower cost) is kept."""
+    start: dict[str, float] = {}
+    for s in ("gap", "force", "torque"):
+        names = [n for n in first.free if n in STAGE_PARAMS[s] and n not in first.per_trace]
+        if names and all(t.has(c) for t in traces for c in STAGE_COLUMNS[s]):
+            g = fit(traces, stage=s, **(kw | {"free": names, "per_trace": ()}))
+            if g.converged:
+                start |= {n: g.params[0].as_dict()[n] for n in names}
+    if not start:
+        return first
+    second = fit(traces, stage="chain", start=start, **kw)
+    before, after = _profile_nll(first), _profile_nll(second)
+    if not after < before:
+        return first
+    notes.append(
+        "the least-squares fit of the whole chain from its default start left residuals far "
+        "above the sensor noise (a local minimum); it was restarted from the teacher-forced "
+        f"fits of the stages, which raised its log-likelihood by {before - after:.4g}"
+    )
+    return second
+
+
+def _profile_nll(f: FitResult) -> float:
+    """Minus the log-likelihood at the fit with each channel's noise at its ML value
+    (up to a constant): sum of n log(sigma) over traces and channels."""
+    return sum(
+        f.data["traces"][k][ch].shape[0] * math.log(max(sig, 1e-300))
+        for k in range(len(f.sigma))
+        for ch, sig in f.sigma[k].items()
+    )
 
 
 def _advance(k: int, sampler: emcee.EnsembleSampler, state):
@@ -833,7 +875,8 @@ def _assemble(
             tau_steps=float(np.max(tau[n])),
         )  # fmt: skip
     nz = noise.reshape(E, T, W, S)
-    tau_noise = np.stack([_tau(nz[e]) for e in range(E)]) * thin if T > 1 else np.ones((E, S))
+    with np.errstate(all="ignore"):
+        tau_noise = np.stack([_tau(nz[e]) for e in range(E)]) * thin if T > 1 else np.ones((E, S))
     for j, seg in enumerate(segs):
         ess = float(np.sum(W * T * thin / tau_noise[:, j]))
         rhat = _rhat([nz[e, :, :, j] for e in range(E)])
@@ -878,16 +921,16 @@ def _assemble(
         "burn": burn,
         "thin": thin,
         "steps_after_burn": diag["n_post"],
-        "moves": "emcee DEMove (0.8) + DESnookerMove (0.2)",
-        "tau": {n: [float(t) for t in tau[n]] for n in names},
-        "tau_max": float(np.max(diag["tau"])),
+        "moves": "emcee DEMove",
+        "tau": {n: [_finite(float(t)) for t in tau[n]] for n in names},
+        "tau_max": _finite(float(np.max(diag["tau"]))),
         "tau_reliable": diag["reliable"],
         "tau_rule": f"steps after burn-in >= {TAU_RELIABLE:g} tau",
         "acceptance": [float(np.mean(a)) for a in acc],
         "stuck_walkers": stuck,
-        "ess_min": float(np.min(diag["ess"])),
+        "ess_min": _finite(float(np.min(diag["ess"]))),
         "ess_floor": float(min_ess),
-        "r_hat_max": float(np.max(diag["rhat"])),
+        "r_hat_max": _finite(float(np.max(diag["rhat"]))),
         "r_hat_threshold": RHAT_MAX,
         "draws_kept": int(E * T * W),
     }
@@ -942,7 +985,7 @@ def _unsampled_source(name: str, stages: Sequence[str], traces: Sequence[Trace])
 
 def _convergence_warnings(diag, names, stuck, acc, N, W, E, min_ess) -> list[str]:
     out = []
-    tau = float(np.max(diag["tau"]))
+    tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], N)))
     need = int(math.ceil(diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (E * W))))
     advice = f"run at least {max(need, N + 1)} steps (--steps {max(need, N + 1)}, or --max-steps)"
     if not diag["reliable"]:
@@ -1011,11 +1054,15 @@ def _identifiability(names, draws, stats, traces, stages, fits, fixed) -> list[d
     bell = [n for n in ("a", "b", "c") if n in names]
     x_max = max((float(np.max(t["x_m"])) for t in traces if t.has("x_m")), default=None)
     if len(bell) == 3 and x_max is not None and x_max < stats["c"]["mean"]:
+        if "F_rt" in names and any(
+            abs(c) > RIDGE for m, k, c in pairs if "F_rt" in (m, k) and {m, k} & set(bell)
+        ):
+            bell.insert(0, "F_rt")
         rho = ", ".join(f"{m}-{k} {c:+.2f}" for m, k, c in pairs if {m, k} <= set(bell))
         out.append({
             "kind": "ridge", "params": bell,
-            "statement": f"a, b and c trade off along a ridge: the piston never passes the "
-            f"bell's centre c (max x = {x_max * 1e3:.3f} mm < c = "
+            "statement": f"{', '.join(bell[:-1])} and {bell[-1]} trade off along a ridge: the "
+            f"piston never passes the bell's centre c (max x = {x_max * 1e3:.3f} mm < c = "
             f"{stats['c']['mean'] * 1e3:.3f} mm), so only the rising flank of the force is "
             f"seen" + (f" (posterior correlations {rho})" if rho else "") + ". It needs "
             f"{HINTS['c']}; or fix b.",

@@ -66,7 +66,7 @@ def posterior_summary(result) -> str:
         f"burn-in {d['burn']}, thin {d['thin']}, tau up to {d['tau_max']:.0f} steps, "
         f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance'])}",
         "",
-        f"  {'param':<19}{'mean':>11}{'sd':>10}{pct + ' HDI':>24}{'ESS':>8}{'R-hat':>7}  unit",
+        f"  {'param':<19}{'mean':>11}{'sd':>10}{pct + ' HDI':>27}{'ESS':>8}{'R-hat':>7}  unit",
     ]
     for name, s in result.stats.items():
         hdi = f"[{_fmt(s['hdi_low'])}, {_fmt(s['hdi_high'])}]"
@@ -74,7 +74,7 @@ def posterior_summary(result) -> str:
         rhat = "-" if s["r_hat"] is None else f"{s['r_hat']:.3f}"
         src = "" if s["source"] == "posterior" else f"  ({s['source']})"
         lines.append(
-            f"  {name:<19}{_fmt(s['mean']):>11}{_fmt(s['sd'], 2):>10}{hdi:>24}{ess:>8}{rhat:>7}"
+            f"  {name:<19}{_fmt(s['mean']):>11}{_fmt(s['sd'], 2):>10}{hdi:>27}{ess:>8}{rhat:>7}"
             f"  {s['unit']}{src}"
         )
     names, corr = result.correlation()

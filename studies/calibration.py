@@ -1,0 +1,272 @@
+"""Calibration of the posterior intervals on synthetic traces with known truth.
+
+For each repeat ``i``: a rig unit is drawn around the nominal rig
+(``rig.vary(RigParams(), default_rng([SEED, i]), rel=0.05)``: every physical parameter
+times a log-normal factor with 5 % spread), a 3 s, 200 Hz trace of the open-loop
+``steps`` profile is simulated with the rig's default sensor noise (noise seed ``i``),
+and :func:`ewb_ident.posterior.sample` is run with seed ``i`` and default settings
+(2 ensembles, DE moves, 2000 steps extended until converged, noise model ``auto``,
+default priors). ``kT`` is held at the unit's true value: without a load-torque
+measurement only ``M/kT`` and ``v/kT`` are identified, so with ``kT`` at the seed value
+the "truth" of M and v would be a ratio, not the rig's value.
+
+Recorded per repeat and sampled parameter: the truth, posterior mean and sd, the 90 %
+HDI and whether it holds the truth, and the rank statistic of simulation-based
+calibration (the fraction of posterior draws below the truth; uniform on (0, 1) for a
+calibrated posterior). Truths are drawn from a hardware-variation distribution, not from
+the (much wider, weakly informative) priors, so this measures the frequentist coverage
+of the Bayesian intervals where rigs actually are; with data that dominate the prior the
+two agree.
+
+Usage (from the repository root)::
+
+    python studies/calibration.py --stage chain --repeats 100
+    python studies/calibration.py --stage force,torque --repeats 200
+    python studies/calibration.py --report-only
+
+Each run appends to ``reports/calibration_<stage>.csv`` (rewritten atomically after every
+repeat, so an interrupted study resumes where it stopped) and rewrites
+``reports/calibration.md`` from every CSV present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import math
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from scipy import stats as sps
+
+from ewb_ident import rig
+from ewb_ident.outputs import atomic_write
+from ewb_ident.posterior import sample
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORTS = ROOT / "reports"
+SEED = 2025
+NOMINAL = 0.90
+FIELDS = (
+    "repeat",
+    "param",
+    "truth",
+    "mean",
+    "sd",
+    "hdi_low",
+    "hdi_high",
+    "inside",
+    "rank",
+    "ess",
+    "r_hat",
+    "converged",
+    "steps",
+    "seconds",
+)
+
+
+NOTES = {
+    "force+torque": [
+        "Teacher-forced stages condition on the *measured* input channel (x for the force,",
+        "force for the torque) as if it were exact. The rig's x sensor noise (2 um) times",
+        "the bell's slope (up to ~7 N/um) is force noise the likelihood attributes to the",
+        "parameters, so these intervals are too narrow where the input is noisy: use the",
+        "whole chain (from the logged voltage, which is exact) for calibrated intervals,",
+        "and read teacher-forced intervals as a quick look.",
+        "",
+    ],
+}
+HISTORY = [
+    "## How this study found a sampler bug",
+    "",
+    "The first run of this study used emcee's recommended mix of moves (80 % `DEMove`,",
+    "20 % `DESnookerMove`). Over 32 repeats of the chain it gave 75-92 % coverage and",
+    "z rms 1.0-1.35 for every parameter: intervals about 12 % too narrow. emcee 3.1.6's",
+    "`DESnookerMove` is biased (its direction vector is `delta / sqrt(norm)` instead of",
+    "a unit vector; fixed upstream in dfm/emcee#531): alone it samples a 14-dimensional",
+    "Gaussian with 40 % too little variance. ewb-ident now uses `DEMove` alone, and",
+    "`tests/test_posterior.py::test_sampler_reproduces_an_analytic_posterior` checks the",
+    "sampler against an analytic posterior. The study also found a least-squares start",
+    "in a local minimum (repeat 39, a flat bell); the sampler now restarts such a fit",
+    "from the teacher-forced stage fits.",
+    "",
+]
+
+
+def _truth_of(name: str, params: rig.RigParams, truth: dict) -> float | None:
+    base = name.split("[")[0]
+    if base == "theta0_deg":
+        return float(truth["theta0_deg"])
+    return float(getattr(params, base)) if hasattr(params, base) else None
+
+
+def run_repeat(i: int, stages: tuple[str, ...] | str) -> list[dict]:
+    params = rig.vary(rig.RigParams(), np.random.default_rng([SEED, i]), rel=0.05)
+    trace, truth = rig.simulate_rig(
+        params, profile="steps", sample_rate_hz=200.0, duration_s=3.0, seed=i, name=f"cal{i}"
+    )
+    t0 = time.perf_counter()
+    res = sample(trace, stage=stages, fixed={"kT": params.kT}, seed=i)
+    seconds = time.perf_counter() - t0
+    rows = []
+    for name in res.names:
+        value = _truth_of(name, params, truth)
+        if value is None:
+            continue
+        s = res.stats[name]
+        draws = res.draws[name].reshape(-1)
+        rows.append(
+            {
+                "repeat": i,
+                "param": name,
+                "truth": value,
+                "mean": s["mean"],
+                "sd": s["sd"],
+                "hdi_low": s["hdi_low"],
+                "hdi_high": s["hdi_high"],
+                "inside": int(s["hdi_low"] <= value <= s["hdi_high"]),
+                "rank": float(np.mean(draws < value)),
+                "ess": s["ess"],
+                "r_hat": s["r_hat"],
+                "converged": int(res.converged),
+                "steps": res.diagnostics["n_steps"],
+                "seconds": round(seconds, 2),
+            }
+        )
+    return rows
+
+
+def _read(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _write(path: Path, rows: list[dict]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=FIELDS)
+    w.writeheader()
+    w.writerows(rows)
+    text = buf.getvalue()
+    atomic_write([(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))])
+
+
+def _wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    p = k / n
+    d = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / d
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return c - h, c + h
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Coverage per parameter (with a 95 % Wilson interval), z-score spread, SBC ranks."""
+    out: dict = {"params": {}}
+    repeats = sorted({int(r["repeat"]) for r in rows})
+    out["repeats"] = len(repeats)
+    by_rep = {i: [r for r in rows if int(r["repeat"]) == i] for i in repeats}
+    out["converged"] = sum(int(v[0]["converged"]) for v in by_rep.values())
+    out["seconds_median"] = float(np.median([float(v[0]["seconds"]) for v in by_rep.values()]))
+    out["steps_median"] = float(np.median([float(v[0]["steps"]) for v in by_rep.values()]))
+    abcm = {"a", "b", "c", "mu"}
+    joint = [all(int(r["inside"]) for r in v if r["param"] in abcm) for v in by_rep.values()]
+    out["joint_abcmu"] = float(np.mean(joint))
+    for name in dict.fromkeys(r["param"] for r in rows):
+        rs = [r for r in rows if r["param"] == name]
+        k, n = sum(int(r["inside"]) for r in rs), len(rs)
+        z = np.array([(float(r["mean"]) - float(r["truth"])) / float(r["sd"]) for r in rs])
+        ranks = np.array([float(r["rank"]) for r in rs])
+        counts = np.histogram(ranks, bins=10, range=(0, 1))[0]
+        out["params"][name] = {
+            "n": n,
+            "coverage": k / n,
+            "ci": _wilson(k, n),
+            "z_rms": float(np.sqrt(np.mean(z * z))),
+            "z_mean": float(np.mean(z)),
+            "rank_p": float(sps.chisquare(counts).pvalue),
+            "ess_min": float(min(float(r["ess"]) for r in rs)),
+        }
+    return out
+
+
+def report() -> str:
+    """``reports/calibration.md`` from every ``calibration_*.csv``."""
+    lines = [
+        "# Calibration of the posterior intervals (simulation-based)",
+        "",
+        "Generated by `studies/calibration.py` (its docstring says exactly what is run).",
+        "Per repeat: a rig unit drawn with `rig.vary(RigParams(), rng, rel=0.05)`, a 3 s,",
+        "200 Hz `steps` trace with the rig's default sensor noise, and `ewb_ident.sample`",
+        "with default settings and seed = repeat (kT held at the unit's true value). A",
+        "90 % HDI should hold the truth in 90 % of repeats; the target is 85-95 %.",
+        "`z rms` is the spread of (posterior mean - truth) / posterior sd (1 if calibrated);",
+        "`rank p` the p-value of a chi-square test of uniformity of the SBC ranks (10 bins).",
+        "",
+    ]
+    for path in sorted(REPORTS.glob("calibration_*.csv")):
+        rows = _read(path)
+        if not rows:
+            continue
+        s = summarise(rows)
+        stage = path.stem.removeprefix("calibration_")
+        lines += [
+            f"## Stage `{stage}`: {s['repeats']} repeats",
+            "",
+            f"Converged: {s['converged']} of {s['repeats']}. Median time per posterior "
+            f"{s['seconds_median']:.1f} s ({s['steps_median']:.0f} steps per ensemble, "
+            "2 cores shared). Truth inside all four 90 % HDIs of a, b, c, mu at once: "
+            f"{100 * s['joint_abcmu']:.0f} % of repeats (the four are not independent).",
+            "",
+            "| parameter | coverage of the 90 % HDI | 95 % interval | z rms | z mean | rank p |"
+            " min ESS |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for name, p in s["params"].items():
+            flag = "" if 0.85 <= p["coverage"] <= 0.95 else " (outside 85-95 %)"
+            lines.append(
+                f"| `{name}` | {100 * p['coverage']:.0f} %{flag} | {100 * p['ci'][0]:.0f}-"
+                f"{100 * p['ci'][1]:.0f} % | {p['z_rms']:.2f} | {p['z_mean']:+.2f} | "
+                f"{p['rank_p']:.2f} | {p['ess_min']:.0f} |"
+            )
+        lines.append("")
+        lines += NOTES.get(stage, [])
+    lines += HISTORY
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--stage", default="chain", help="chain, or e.g. force,torque")
+    ap.add_argument("--repeats", type=int, default=100)
+    ap.add_argument("--report-only", action="store_true")
+    args = ap.parse_args()
+    jax.config.update("jax_enable_x64", True)
+    REPORTS.mkdir(exist_ok=True)
+    if not args.report_only:
+        names = tuple(args.stage.split(","))
+        stages = names[0] if len(names) == 1 else names
+        path = REPORTS / f"calibration_{'+'.join(names)}.csv"
+        rows = _read(path)
+        done = {int(r["repeat"]) for r in rows}
+        for i in range(args.repeats):
+            if i in done:
+                continue
+            rows += run_repeat(i, stages)
+            _write(path, rows)
+            cov = summarise(rows)["params"]
+            print(
+                f"repeat {i}: "
+                + ", ".join(f"{n} {100 * cov[n]['coverage']:.0f}%" for n in ("a", "b", "c", "mu")),
+                flush=True,
+            )
+    text = report()
+    atomic_write([(REPORTS / "calibration.md", lambda tmp: tmp.write_text(text, "utf-8"))])
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
