@@ -413,6 +413,42 @@ def report(
     typer.echo(f"wrote {path} ({len(figures)} figures)")
 
 
+@app.command()
+def diagnose(
+    trace: Annotated[Path, typer.Argument(help="One trace file (.csv, .parquet, .mat).")],
+    out: OutDir,
+    catalog: Annotated[
+        str | None,
+        typer.Option(help="Catalog ids to try, e.g. 'backlash,sensor_delay' (default: all)."),
+    ] = None,
+    bic_threshold: Annotated[
+        float, typer.Option(help="Evidence a mechanism needs: delta BIC <= -THRESHOLD.")
+    ] = 10.0,
+    figures: Annotated[
+        bool, typer.Option("--figures/--no-figures", help="Also write PNG figures.")
+    ] = True,
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Locate where the model misses the recording, name the missing physics, add it and
+    refit; writes OUT/diagnosis.json and figures, and prints a summary."""
+    from .diagnose import DiagnoseError
+    from .diagnose import diagnose as run_diagnose
+    from .figures import write_diagnosis
+
+    if not bic_threshold > 0:
+        _fail(f"--bic-threshold must be a positive number, got {bic_threshold!r}")
+    try:
+        (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check)
+        result = run_diagnose(tr, bic_threshold=bic_threshold, catalog=_names(catalog))
+    except (*_bad_input_errors(), DiagnoseError) as err:
+        _fail(str(err))
+    paths = write_diagnosis(result, out, extra={"traces": [str(trace)]}, figures=figures)
+    typer.echo(result.summary())
+    typer.echo(f"wrote {out / 'diagnosis.json'} and {len(paths) - 1} figure(s)")
+
+
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,

@@ -22,9 +22,9 @@ Hooks
 -----
 ``voltage``               ``V_eff = voltage(V, s, p)``: the voltage the armature sees
                           (motor stage; ``s`` = (i, omega, theta[rad])).
-``motor_friction``        ``(tau_slip, tau_stick) = motor_friction(s, p, force)``: a
-                          friction-like torque that opposes motion, N*m, with its
-                          breakaway level (motor stage; integrated implicitly).
+``motor_friction``        ``(T, eps) = motor_friction(s, p, force)``: a friction-like
+                          torque ``T tanh(omega / eps)`` that opposes motion (``T`` in
+                          N*m, ``eps`` in rad/s; motor stage; integrated implicitly).
 ``wedge_angle``           ``theta_w = wedge_angle(theta, ctx)``: the wedge-side angle
                           the gap polynomial sees (gap stage), a whole series.
 ``clamp_force``           ``F = clamp_force(x_drive, f_bell, ctx)``: the clamping force
@@ -222,9 +222,8 @@ class AbstractMechanism(eqx.Module):
         return V
 
     def motor_friction(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray):
-        """Slip and stick friction torques, N*m (``motor_friction`` hook)."""
-        z = jnp.zeros_like(s[1])
-        return z, z
+        """Friction torque level (N*m) and switching speed (rad/s) (``motor_friction``)."""
+        return jnp.zeros_like(s[1]), jnp.ones_like(s[1])
 
     def wedge_angle(self, theta_deg: jnp.ndarray, ctx: Mapping[str, Any]) -> jnp.ndarray:
         """Wedge-side angle series, degrees (``wedge_angle`` hook)."""
@@ -274,7 +273,7 @@ def fmt_pm(value: float, se: float | None, digits: int = 2) -> str:
     if se is None or not np.isfinite(se) or se <= 0:
         return f"{value:.3g}"
     exp = int(np.floor(np.log10(se))) - (digits - 1)
-    if -4 <= exp <= 6:
+    if -9 <= exp <= 6:
         dec = max(0, -exp)
         return f"{round(value, -exp):.{dec}f} ± {round(se, -exp):.{dec}f}"
     return f"{value:.3g} ± {se:.2g}"

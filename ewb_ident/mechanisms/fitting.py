@@ -5,7 +5,8 @@ caller (the sensor noise floor, with the input noise a teacher-forced stage prop
 so that fits of the same stages with and without a mechanism have comparable costs.
 Parameters are optimised in unconstrained O(1) coordinates: the base parameters as
 declared in :data:`ewb_ident.params.PARAMS`, each mechanism's as it declares them.
-The solver is optimistix's Levenberg-Marquardt from the best of a few starting points.
+The solver is Levenberg-Marquardt (:func:`levenberg_marquardt`) from the best of a few
+starting points.
 
 Arrays are padded to a multiple of :data:`PAD` samples (padding weighted zero) so that
 traces of similar length share compiled code.
@@ -22,7 +23,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ..params import MODEL_PARAMS, PARAMS, EWBParams
 from ..traces import Trace
@@ -55,6 +55,30 @@ def _pad(y: np.ndarray, n_pad: int) -> np.ndarray:
     return np.concatenate([y, np.full(n_pad - y.size, y[-1])]) if n_pad > y.size else y
 
 
+def slow_smooth(y: np.ndarray, sigma: float, width: int = 5, fast: int = 1) -> np.ndarray:
+    """``y`` averaged over ``width`` samples where it moves by less than its noise per
+    sample, and left as it is where it moves faster.
+
+    A play operator driven by a noisy signal follows the noise's running extreme while
+    the signal stands still (the extreme of n noise samples grows like
+    ``sigma sqrt(2 ln n)``); averaging there removes most of that drift. Where the
+    signal moves fast the noise cannot push the play, and averaging would bend the
+    signal, so the reading averaged over only ``fast`` samples is kept.
+    """
+    y = np.asarray(y, dtype=float)
+    yf = smooth(y, fast)
+    if sigma <= 0 or y.size < width:
+        return yf
+    ys = smooth(y, width)
+    step = np.abs(np.gradient(smooth(y, 2 * width + 1)))
+    a = np.exp(-((step / sigma) ** 2))
+    return a * ys + (1.0 - a) * yf
+
+
+from ..locate import smooth  # noqa: E402
+from ..metrics import noise_sigma  # noqa: E402
+
+
 def make_data(
     trace: Trace,
     sigma: Mapping[str, np.ndarray | float],
@@ -62,6 +86,9 @@ def make_data(
     *,
     x_play_m: float = 0.0,
     omega_ref: float = 1.0,
+    theta_noise: float | None = None,
+    x_smooth: int = 1,
+    x_model: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The data pytree of a fit.
 
@@ -74,21 +101,43 @@ def make_data(
     fixed
         Values (SI) of every base parameter and ``theta0_deg``.
     x_play_m
-        Half width of the play filter on the measured displacement (force stage), m.
+        Half width of the play filter on the measured displacement that drives a
+        hysteresis state (force stage, teacher-forced), m.
+    x_smooth
+        Width (samples) of the moving average applied to that displacement first.
+    x_model
+        A noise-free displacement history (m) that drives a hysteresis state instead
+        of the measured one (e.g. the gap polynomial of the motor model's angle, which
+        follows the logged voltage, controller dither included).
     omega_ref
         Reference disc speed of ``friction_speed``, rad/s.
+    theta_noise
+        Noise of the measured angle, degrees: the angle that drives a play operator
+        (``backlash``, teacher-forced) is averaged where it stands still
+        (:func:`slow_smooth`).
     """
     n = trace.n
     n_pad = padded_length(n)
     mask = np.zeros(n_pad)
     mask[:n] = 1.0
     meas = {c: jnp.asarray(_pad(trace[c], n_pad)) for c in COLUMNS if trace.has(c)}
+    drive = {}
+    if x_model is not None:
+        drive["x_model"] = jnp.asarray(_pad(np.asarray(x_model, dtype=float), n_pad))
+    elif trace.has("x_m") and x_play_m > 0:
+        x_noise = noise_sigma(trace["x_m"])
+        x_drive = slow_smooth(trace["x_m"], x_noise, width=5 * x_smooth, fast=x_smooth)
+        drive["x_m"] = jnp.asarray(_pad(x_drive, n_pad))
+    if trace.has("theta_deg"):
+        s_th = float(theta_noise) if theta_noise is not None else 0.0
+        drive["theta_deg"] = jnp.asarray(_pad(slow_smooth(trace["theta_deg"], s_th), n_pad))
     w = {}
     for ch, s in sigma.items():
         s = np.broadcast_to(np.asarray(s, dtype=float), (n,))
         w[ch] = jnp.asarray(_pad(1.0 / s, n_pad) * mask)
     return {
         "meas": meas,
+        "drive": drive,
         "w": w,
         "fixed": {k: jnp.asarray(float(v)) for k, v in fixed.items()},
         "dt": jnp.asarray(trace.dt),
@@ -142,31 +191,98 @@ class AugProblem(eqx.Module):
 
 
 @eqx.filter_jit
-def _solve(problem: AugProblem, u0, data, max_steps):
-    solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9)
-    sol = optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
-    r = problem(sol.value, data)
-    return sol.value, sol.result, jnp.sum(r * r), sol.stats["num_steps"]
-
-
-@eqx.filter_jit
-def _costs(problem: AugProblem, us, data):
-    return jax.vmap(lambda u: jnp.sum(problem(u, data) ** 2))(us)
-
-
-@eqx.filter_jit
 def _residuals(problem: AugProblem, u, data):
     return problem(u, data)
 
 
 @eqx.filter_jit
+def _res_jac(problem: AugProblem, u, data):
+    """Residuals, their Jacobian (forward mode) and the predictions, in one pass."""
+
+    def f(v):
+        pred = problem.predict(v, data)
+        r = jnp.concatenate(
+            [(pred[ch] - data["meas"][ch]) * data["w"][ch] for ch in problem.channels]
+        )
+        return r, (r, pred)
+
+    J, (r, pred) = jax.jacfwd(f, has_aux=True)(u)
+    return r, J, pred
+
+
 def _jacobian(problem: AugProblem, u, data):
-    return jax.jacfwd(problem)(u, data)
+    return _res_jac(problem, u, data)[1]
 
 
-@eqx.filter_jit
-def _predict(problem: AugProblem, u, data):
-    return problem.predict(u, data)
+@dataclass(frozen=True)
+class Solution:
+    """Result of :func:`levenberg_marquardt`."""
+
+    u: np.ndarray
+    cost: float
+    converged: bool
+    steps: int
+
+
+def levenberg_marquardt(
+    problem: AugProblem,
+    u0: np.ndarray,
+    data: Mapping[str, Any],
+    *,
+    max_steps: int = 200,
+    rtol: float = 1e-9,
+    xtol: float = 1e-9,
+) -> Solution:
+    """Minimise ``sum(problem(u, data)^2)`` by Levenberg-Marquardt.
+
+    The loop runs in NumPy around two compiled functions (residuals; residuals with
+    their forward-mode Jacobian): compiling a whole solver for every combination of
+    mechanisms costs ten times more than the solve. Marquardt's diagonal scaling;
+    Nielsen's update of the damping. Converged when the relative decrease of the cost,
+    or the step relative to ``u``, falls below the tolerances, or the gradient vanishes.
+    """
+    u = np.asarray(u0, dtype=float)
+    r, J, _ = _res_jac(problem, jnp.asarray(u), data)
+    r, J = np.asarray(r), np.asarray(J)
+    cost = float(r @ r)
+    if not np.isfinite(cost):
+        return Solution(u, float("inf"), False, 0)
+    A, g = J.T @ J, J.T @ r
+    lam = 1e-3 * float(np.max(np.diag(A))) if A.size else 0.0
+    nu = 2.0
+    for step in range(1, max_steps + 1):
+        if A.size == 0:
+            return Solution(u, cost, True, step)
+        D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
+        if float(np.max(np.abs(g) / np.sqrt(D))) <= 1e-10 * max(np.sqrt(cost), 1e-300):
+            return Solution(u, cost, True, step)
+        try:
+            delta = np.linalg.solve(A + lam * np.diag(D), -g)
+        except np.linalg.LinAlgError:
+            lam, nu = lam * nu, nu * 2
+            continue
+        u_new = u + delta
+        r_new = np.asarray(_residuals(problem, jnp.asarray(u_new), data))
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost_new = float(r_new @ r_new)
+        predicted = float(-2.0 * g @ delta - delta @ A @ delta)
+        rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
+        if np.isfinite(cost_new) and rho > 0:
+            small = cost - cost_new <= rtol * cost
+            tiny = np.linalg.norm(delta) <= xtol * (np.linalg.norm(u) + xtol)
+            u, cost = u_new, cost_new
+            r, J, _ = _res_jac(problem, jnp.asarray(u), data)
+            r, J = np.asarray(r), np.asarray(J)
+            A, g = J.T @ J, J.T @ r
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            if small or tiny:
+                return Solution(u, cost, True, step)
+        else:
+            lam, nu = lam * nu, nu * 2.0
+            if lam > 1e16 * max(float(np.max(D)), 1.0):
+                return Solution(u, cost, True, step)
+    return Solution(u, cost, False, max_steps)
 
 
 @dataclass(frozen=True)
@@ -229,6 +345,7 @@ def fit_mechanisms(
     *,
     ctx: Mapping[str, Any] | None = None,
     explore: Sequence[bool] | None = None,
+    alt_starts: Sequence[Mapping[str, float]] = (),
     max_steps: int = 200,
     n_best: int = 2,
 ) -> AugFit:
@@ -253,10 +370,14 @@ def fit_mechanisms(
     explore
         Per mechanism, whether to try its own starting points besides its given values
         (default: all); a mechanism fitted before needs only its fitted values.
+    alt_starts
+        Other starting values of (some) free base parameters: the solver also runs from
+        the best starting point built on each (e.g. nominal motor values, when the
+        baseline's have compensated for the missing physics and sit in another valley).
     max_steps
         Solver step limit per start.
     n_best
-        Number of the best starting points the solver runs from.
+        Number of the best starting points (over all) the solver runs from.
     """
     stages = tuple(stages)
     mechs = tuple(mechanisms)
@@ -269,7 +390,7 @@ def fit_mechanisms(
         n_sub=n_substeps(dt, mechs),
     )
     base = {k: float(v) for k, v in data["fixed"].items()} | dict(start or {})
-    u_base = [float(PARAMS[n].to_unconstrained(base[n])) for n in problem.free]
+    bases = [base] + [base | dict(a) for a in alt_starts]
 
     # Starting points: the given values of each mechanism, and its own suggestions.
     ctx = dict(ctx or {}) | {"dt": dt}
@@ -279,31 +400,46 @@ def fit_mechanisms(
         own = [m.values()] + ([m.values() | s for s in m.starts(ctx)] if more else [])
         options.append(own)
     combos = list(itertools.islice(itertools.product(*options), MAX_STARTS))
-    us = []
-    for combo in combos:
-        u = list(u_base)
-        for m, vals in zip(mechs, combo, strict=True):
-            u += [_to_u(i, vals[i.name]) for i in m.param_info()]
-        us.append(u)
-    us = jnp.asarray(np.array(us, dtype=float))
-    costs = np.asarray(_costs(problem, us, data))
+    us, group = [], []
+    for g, b in enumerate(bases):
+        u_base = [float(PARAMS[n].to_unconstrained(b[n])) for n in problem.free]
+        for combo in combos:
+            u = list(u_base)
+            for m, vals in zip(mechs, combo, strict=True):
+                u += [_to_u(i, vals[i.name]) for i in m.param_info()]
+            us.append(u)
+            group.append(g)
+    us = np.array(us, dtype=float)
+    if len(us) > 1:
+        with np.errstate(over="ignore", invalid="ignore"):
+            costs = np.array(
+                [
+                    float(np.sum(np.asarray(_residuals(problem, jnp.asarray(u), data)) ** 2))
+                    for u in us
+                ]
+            )
+    else:
+        costs = np.zeros(1)
     costs = np.where(np.isfinite(costs), costs, np.inf)
-    order = np.argsort(costs)[: max(1, n_best)]
+    ranked = [int(i) for i in np.argsort(costs)]
+    order = ranked[: max(1, n_best)]
+    group = np.asarray(group)
+    for g in range(1, len(bases)):  # the best start of each alternative too
+        best_g = next((i for i in ranked if group[i] == g), None)
+        if best_g is not None and best_g not in order:
+            order.append(best_g)
 
     best = None
     for i in order:
-        u, result, cost, _ = _solve(problem, us[i], data, max_steps)
-        cost = float(cost)
-        ok = result == optx.RESULTS.successful and np.isfinite(cost)
-        if not np.isfinite(cost):
+        sol = levenberg_marquardt(problem, us[i], data, max_steps=max_steps)
+        if not np.isfinite(sol.cost):
             continue
-        if best is None or cost < best[2]:
-            best = (u, ok, cost)
+        if best is None or sol.cost < best.cost:
+            best = sol
     if best is None:  # every start failed: keep the best start point
         i = int(order[0])
-        best = (us[i], False, float(costs[i]))
-    u, ok, cost = best
-    return _result(problem, u, data, ok, mechs)
+        best = Solution(us[i], float(costs[i]), False, 0)
+    return _result(problem, best.u, data, best.converged, mechs)
 
 
 def _to_u(info, value: float) -> float:
@@ -317,7 +453,8 @@ def _to_u(info, value: float) -> float:
 
 def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
     n = int(data["n"])
-    r = np.asarray(problem(u, data))
+    r, J, pred_all = _res_jac(problem, jnp.asarray(u), data)
+    r, J = np.asarray(r), np.asarray(J)
     rss = float(np.sum(r * r))
     nch = len(problem.channels)
     n_res = n * nch
@@ -325,7 +462,6 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
     for j, ch in enumerate(problem.channels):
         seg = r[j * r.size // nch : (j + 1) * r.size // nch]
         chan_rss[ch] = float(np.sum(seg * seg))
-    J = np.asarray(_jacobian(problem, u, data))
     k = J.shape[1]
     u_np = np.asarray(u)
     infos = [PARAMS[n_] for n_ in problem.free]
@@ -335,8 +471,8 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
             infos.append(info)
             names.append(f"{tmpl.variant}.{info.name}")
     stderr = _stderr(J, rss, n_res, u_np, infos)
-    p, theta0, mechs = problem.build(u, data)
-    pred = {ch: np.asarray(v)[:n] for ch, v in _predict(problem, u, data).items()}
+    p, theta0, mechs = problem.build(jnp.asarray(u), data)
+    pred = {ch: np.asarray(v)[:n] for ch, v in pred_all.items()}
     values = {name: float(getattr(p, name)) for name in MODEL_PARAMS}
     values["theta0_deg"] = float(theta0)
     plain = tuple(m.with_values(m.values()) for m in mechs)

@@ -53,6 +53,8 @@ class ForceHysteresis(AbstractMechanism):
     STAGE: ClassVar[str] = "force"
     hook: ClassVar[str] = "clamp_force"
     physics: ClassVar[str] = "friction hysteresis in caliper and wedge"
+    #: delta shapes the reversal; it is not tested against "no effect".
+    NUISANCE: ClassVar[tuple[str, ...]] = ("delta_m",)
 
     h: ArrayLike = 0.02
     delta_m: ArrayLike = 2e-5

@@ -11,14 +11,14 @@ The motor with mechanisms
 exact linear flow of the armature and rotor (``exp(A h)``, as in
 :mod:`ewb_ident.simulate`) with the voltage the ``voltage`` hooks let through, followed
 by an implicit (backward Euler) step of the friction-like torques of the
-``motor_friction`` hooks: with ``omega_free`` the speed after the linear flow,
-
-    omega = 0                                        if |omega_free| <= h tau_stick / M
-    omega = omega_free - h tau_slip sign(omega_free) / M    otherwise,
-
-the time-stepping scheme of Moreau for set-valued friction. A stuck actuator therefore
-stays exactly still, with no stiff regularisation; the splitting is first order in
-``h``. The model clamping force a wedge load needs is ``F_bell(gap(theta))`` at the
+``motor_friction`` hooks, each ``T tanh(omega / eps)`` (a torque ``T`` that opposes
+motion, switching over a speed scale ``eps``): with ``omega_free`` the speed after the
+linear flow, ``omega`` solves ``omega = omega_free - (h / M) sum T tanh(omega / eps)``.
+It starts from the Coulomb limit (``eps -> 0``, Moreau's time-stepping scheme: stuck,
+``omega = 0``, when ``|omega_free| <= h sum T / M``) and takes a few Newton steps, so a
+stiff, nearly set-valued friction is integrated stably and stays differentiable for the
+fit; an actuator held by friction stays still. The splitting is first order in ``h``.
+The model clamping force a wedge load needs is ``F_bell(gap(theta))`` at the
 state's angle.
 """
 
@@ -38,6 +38,9 @@ from .base import AbstractMechanism
 
 #: Longest sub-step of the motor integration with mechanisms, s.
 MAX_SUBSTEP_S = 5.0e-4
+
+#: Newton steps of the implicit friction update.
+FRICTION_NEWTON_STEPS = 3
 
 #: Hooks that act inside the motor integration.
 MOTOR_HOOKS: tuple[str, ...] = ("voltage", "motor_friction", "load_torque")
@@ -95,15 +98,25 @@ def motor_states(
             s1 = s1.at[1].add(-h * tau / p.M).at[2].add(-0.5 * h * h * tau / p.M)
         if fric:
             force = force_of(s1[2])
-            slip = jnp.zeros_like(s1[1])
-            stick = jnp.zeros_like(s1[1])
-            for m in fric:
-                a, b = m.motor_friction(s1, p, force)
-                slip, stick = slip + a, stick + b
+            terms = [m.motor_friction(s1, p, force) for m in fric]
             w = s1[1]
-            stuck = jnp.abs(w) <= h * stick / p.M
-            w_new = jnp.where(stuck, 0.0, w - h * slip / p.M * jnp.sign(w))
-            s1 = s1.at[1].set(w_new).at[2].add(0.5 * h * (w_new - w))
+            k = h / p.M
+            total = sum(t for t, _ in terms)
+            # Start from the Coulomb (Moreau) solution, the limit of vanishing scales ...
+            stuck = jnp.abs(w) <= k * total
+            v = jnp.where(stuck, 0.0, w - k * total * jnp.sign(w))
+            lo, hi = jnp.minimum(w, 0.0), jnp.maximum(w, 0.0)
+            # ... then Newton on v - w + k sum T tanh(v / eps) = 0 (monotone; the root lies
+            # between 0 and w since friction only opposes motion).
+            for _ in range(FRICTION_NEWTON_STEPS):
+                th = [jnp.tanh(v / eps) for _, eps in terms]
+                res = v - w + k * sum(t * a for (t, _), a in zip(terms, th, strict=True))
+                dres = 1.0 + k * sum(
+                    t / eps * (1.0 - a * a) for (t, eps), a in zip(terms, th, strict=True)
+                )
+                v = jnp.clip(v - res / dres, lo, hi)
+            theta = jnp.where(stuck & (jnp.abs(v) < 1e-12), s[2], s1[2] + 0.5 * h * (v - w))
+            s1 = s1.at[1].set(v).at[2].set(theta)
         return s1
 
     def sample(s, V):
@@ -197,10 +210,13 @@ def predict(
         theta = unread("theta_deg", meas["theta_deg"])
 
     if stage in ("gap", "chain"):
+        wedge = [m for m in mechanisms if m.hook == "wedge_angle"]
         theta_w = theta
-        for m in mechanisms:
-            if m.hook == "wedge_angle":
-                theta_w = m.wedge_angle(theta_w, ctx)
+        if wedge and stage == "gap" and "theta_deg" in d.get("drive", {}):
+            # A measured angle drives the play: use it averaged where it stands still.
+            theta_w = unread("theta_deg", d["drive"]["theta_deg"])
+        for m in wedge:
+            theta_w = m.wedge_angle(theta_w, ctx)
         x = gap(theta_w, p.p2, p.p1, p.p0)
         x = _correct("gap", x, mechanisms, ctx | {"theta": theta})
         out["x_m"] = read("x_m", x)
@@ -214,7 +230,13 @@ def predict(
     force_mechs = [m for m in mechanisms if m.hook == "clamp_force"]
     if stage in ("force", "chain"):
         if stage == "force" and force_mechs:
-            x_drive = play(x, d["x_play"])
+            drive = d.get("drive", {})
+            if "x_model" in drive:  # a noise-free motion history (from the voltage)
+                x_drive = drive["x_model"]
+            else:
+                if "x_m" in drive:
+                    x_drive = unread("x_m", drive["x_m"])
+                x_drive = play(x_drive, d["x_play"])
         F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
         f_bell = F
         for m in force_mechs:
@@ -234,10 +256,16 @@ def predict(
     torque = brake_torque(F, p.mu * factor, d["r_eff"])
     energy_mechs = [m for m in mu_mechs if getattr(m, "USES_ENERGY", False)]
     if energy_mechs:
-        power = torque * ctx["disc_speed"]
-        ctx["energy_J"] = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power[:-1])]) * d["dt"]
-        for m in energy_mechs:
-            torque = torque * m.mu_factor(ctx)
+        # The energy depends on the torque it lowers: two fixed-point passes (the error
+        # after the second is of the order of the fade squared).
+        faded = torque
+        for _ in range(2):
+            power = faded * ctx["disc_speed"]
+            ctx["energy_J"] = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power[:-1])]) * d["dt"]
+            faded = torque
+            for m in energy_mechs:
+                faded = faded * m.mu_factor(ctx)
+        torque = faded
     torque = _correct("torque", torque, mechanisms, ctx | {"force": F, "torque0": torque})
     out["torque_Nm"] = read("torque_Nm", torque)
     return out

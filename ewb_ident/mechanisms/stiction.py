@@ -30,6 +30,11 @@ _INFO = (
 )
 
 
+#: Switching speed of the Coulomb friction, rad/s: small enough to hold the actuator
+#: still (numerical regularisation of the sign function, not a physical parameter).
+STICK_SPEED_RAD_S = 1e-3
+
+
 class Stiction(AbstractMechanism):
     """Constant Coulomb friction torque with sticking."""
 
@@ -54,7 +59,7 @@ class Stiction(AbstractMechanism):
 
     def motor_friction(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray):
         tau = jnp.asarray(self.tau_c_Nm) + 0.0 * s[1]
-        return tau, tau
+        return tau, jnp.full_like(tau, STICK_SPEED_RAD_S)
 
     def observation(self, values, ctx) -> str:
         return "the actuator starts late and runs slower than the model in every move"

@@ -1,10 +1,11 @@
 """``wedge_load_torque``: the clamping force reacts on the actuator (motor stage).
 
 The self-locking worm gear passes part of the clamping force back to the pinion as a
-torque that opposes motion in either direction, ``tau = k_w F sign(omega)``, and holds
-the actuator (up to the same torque) when it stops. It is integrated implicitly as a
-friction-like torque (:func:`ewb_ident.mechanisms.model.motor_states`); ``F`` is the
-model's clamping force at the state's pinion angle.
+torque that opposes motion in either direction, ``tau = k_w F tanh(omega / omega0)``,
+and holds the actuator when it stops (``omega0``, a small speed, is fitted as a
+nuisance). It is integrated implicitly as a friction-like torque
+(:func:`ewb_ident.mechanisms.model.motor_states`); ``F`` is the model's clamping force
+at the state's pinion angle.
 """
 
 from __future__ import annotations
@@ -28,6 +29,15 @@ _INFO = (
         upper=1e-3,
         doc="load torque at the pinion per newton of clamping force",
     ),
+    ParamInfo(
+        "omega0_rad_s",
+        "rad/s",
+        "log",
+        0.5,
+        lower=0.01,
+        upper=20.0,
+        doc="motor speed over which the load torque reverses with the motion",
+    ),
 )
 
 
@@ -42,8 +52,10 @@ class WedgeLoadTorque(AbstractMechanism):
         "(self-locking worm gear)"
     )
     NEEDS: ClassVar[tuple[str, ...]] = ("force_N",)
+    NUISANCE: ClassVar[tuple[str, ...]] = ("omega0_rad_s",)
 
     k_w: ArrayLike = 3e-5
+    omega0_rad_s: ArrayLike = 0.5
 
     def param_info(self) -> tuple[ParamInfo, ...]:
         return _INFO
@@ -53,11 +65,11 @@ class WedgeLoadTorque(AbstractMechanism):
         return ("theta_deg", "current_A")
 
     def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
-        return [{"k_w": k} for k in (3e-6, 1e-5, 3e-5, 1e-4)]
+        return [{"k_w": k, "omega0_rad_s": w} for k in (3e-6, 1e-5, 3e-5, 1e-4) for w in (0.1, 1.0)]
 
     def motor_friction(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray):
         tau = self.k_w * jnp.maximum(force, 0.0)
-        return tau, tau
+        return tau, jnp.asarray(self.omega0_rad_s) + 0.0 * tau
 
     def observation(self, values, ctx) -> str:
         return "the motor turns slower than the model while the clamping force builds"

@@ -1,0 +1,296 @@
+"""Figures of a diagnosis: where the model misses, and how each finding fixes it.
+
+PNG files drawn with matplotlib's Agg backend (no display needed); every function
+returns the figure and leaves global matplotlib state alone (no pyplot). The set that
+``ewb-ident diagnose`` writes:
+
+``mismatch.png``
+    Residual over its noise floor, stage by stage, before (grey) and after (colour) the
+    findings were added, with the phases of the brake application shaded.
+``finding_<k>_<effect>.png``
+    For each finding, the view an engineer would check: displacement against angle
+    (gap stage), force against displacement (force stage), apparent friction
+    coefficient against disc speed or dissipated energy (torque stage), or the channels
+    against time (motor and sensor mechanisms); model before and after, and the
+    residual.
+``chain.png``
+    The whole chain from the voltage, each channel, before and after.
+
+:func:`write_diagnosis` writes them with ``diagnosis.json``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from .diagnose import DiagnosisResult, Finding
+
+_PHASE_COLORS = {
+    "gapping": "#ffffff",
+    "clamping": "#e8f0fb",
+    "saturation": "#eef7e8",
+    "release": "#fbefe6",
+}
+_STAGE_CHANNELS = (
+    ("motor", "theta_deg"),
+    ("motor", "current_A"),
+    ("gap", "x_m"),
+    ("force", "force_N"),
+    ("torque", "torque_Nm"),
+)
+_LABELS = {
+    "theta_deg": "pinion angle, deg",
+    "current_A": "current, A",
+    "x_m": "displacement, mm",
+    "force_N": "force, N",
+    "torque_Nm": "torque, N m",
+}
+_SCALE = {"x_m": 1e3}
+
+
+def _shade_phases(ax, t: np.ndarray, labels: np.ndarray) -> None:
+    start = 0
+    for k in range(1, t.size + 1):
+        if k == t.size or labels[k] != labels[start]:
+            color = _PHASE_COLORS.get(str(labels[start]), "#ffffff")
+            ax.axvspan(t[start], t[min(k, t.size - 1)], color=color, lw=0, zorder=0)
+            start = k
+
+
+def mismatch_figure(result: DiagnosisResult) -> Figure:
+    """Normalised residuals per stage before and after, phases shaded."""
+    rows = [(s, ch) for s, ch in _STAGE_CHANNELS if (s, ch) in result.checks_before]
+    fig = Figure(figsize=(10, 1.9 * max(len(rows), 1) + 0.8), layout="constrained")
+    axes = fig.subplots(max(len(rows), 1), 1, sharex=True, squeeze=False)[:, 0]
+    t = result.trace.time_s
+    flagged = {(m.stage, m.channel) for m in result.mismatches}
+    for ax, (stage, ch) in zip(axes, rows, strict=False):
+        _shade_phases(ax, t, result.labels)
+        before = result.checks_before[(stage, ch)]
+        ax.plot(t, before.normalized, color="0.6", lw=0.7, label="before")
+        after = result.checks_after.get((stage, ch))
+        if after is not None:
+            ax.plot(t, after.normalized, color="C0", lw=0.7, label="after")
+        ax.axhline(2, color="k", lw=0.5, ls=":")
+        ax.axhline(-2, color="k", lw=0.5, ls=":")
+        mark = "  <- mismatch located" if (stage, ch) in flagged else ""
+        ax.set_ylabel(f"{stage}\n{ch}\nr / noise", fontsize=8)
+        ax.set_title(f"{stage} stage, {ch}{mark}", fontsize=9, loc="left")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time, s")
+    fig.suptitle(
+        f"{result.trace_name}: residual over the noise floor (phases: blue clamping, "
+        f"green saturation, orange release)  -  verdict: {result.verdict}",
+        fontsize=10,
+    )
+    return fig
+
+
+def chain_figure(result: DiagnosisResult) -> Figure:
+    """The whole chain from the voltage, each channel, before and after."""
+    chans = [ch for _, ch in _STAGE_CHANNELS if ch in result.chain_before]
+    fig = Figure(figsize=(10, 1.8 * max(len(chans), 1) + 0.8), layout="constrained")
+    axes = fig.subplots(max(len(chans), 1), 1, sharex=True, squeeze=False)[:, 0]
+    t = result.trace.time_s
+    for ax, ch in zip(axes, chans, strict=False):
+        k = _SCALE.get(ch, 1.0)
+        ax.plot(t, result.trace[ch] * k, ".", ms=1.5, color="k", label="measured")
+        ax.plot(t, result.chain_before[ch] * k, color="0.5", lw=1, label="model before")
+        if ch in result.chain_after:
+            ax.plot(t, result.chain_after[ch] * k, color="C1", lw=1, label="model after")
+        b = result.baseline_metrics.get(ch, {}).get("nrmse_pct")
+        a = result.augmented_metrics.get(ch, {}).get("nrmse_pct")
+        if b is not None and a is not None:
+            ax.set_title(f"{ch}: NRMSE {b:.2f} % -> {a:.2f} %", fontsize=9, loc="left")
+        ax.set_ylabel(_LABELS.get(ch, ch), fontsize=8)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time, s")
+    fig.suptitle(f"{result.trace_name}: whole chain from the voltage", fontsize=10)
+    return fig
+
+
+def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
+    """The characteristic view of one finding, before and after, and its residual."""
+    fig = Figure(figsize=(10, 6.5), layout="constrained")
+    top, bottom = fig.subplots(2, 1, height_ratios=(2, 1))
+    tr = result.trace
+    stage = finding.stage
+    ch = _finding_channel(finding)
+    before = result.checks_before.get((stage, ch))
+    after = result.checks_after.get((stage, ch))
+    drawn = False
+    if before is not None and after is not None:
+        view = _VIEWS.get(finding.effect) or _VIEWS.get(stage)
+        if view is not None:
+            drawn = view(top, tr, before, after)
+    if not drawn and before is not None:
+        k = _SCALE.get(ch, 1.0)
+        top.plot(tr.time_s, before.measured * k, ".", ms=1.5, color="k", label="measured")
+        top.plot(tr.time_s, before.predicted * k, color="0.5", label="model before")
+        if after is not None:
+            top.plot(tr.time_s, after.predicted * k, color="C1", label="model after")
+        top.set_xlabel("time, s")
+        top.set_ylabel(_LABELS.get(ch, ch))
+        top.legend(fontsize=8)
+    if before is not None:
+        _shade_phases(bottom, tr.time_s, result.labels)
+        k = _SCALE.get(ch, 1.0)
+        bottom.plot(tr.time_s, before.residual * k, color="0.6", lw=0.7, label="before")
+        if after is not None:
+            bottom.plot(tr.time_s, after.residual * k, color="C0", lw=0.7, label="after")
+        bottom.set_ylabel(f"residual\n{_LABELS.get(ch, ch)}", fontsize=8)
+        bottom.set_xlabel("time, s")
+        bottom.legend(fontsize=8, loc="upper right")
+    title = finding.explanation
+    fig.suptitle(_wrap(f"{finding.effect}: {title}", 130), fontsize=8)
+    return fig
+
+
+def _finding_channel(finding: Finding) -> str:
+    if finding.effect in ("sensor_delay", "sensor_offset"):
+        for name in ("force_N", "torque_Nm", "x_m", "theta_deg", "current_A"):
+            if name in finding.variant:
+                stage_of = {
+                    "theta_deg": "motor",
+                    "current_A": "motor",
+                    "x_m": "gap",
+                    "force_N": "force",
+                    "torque_Nm": "torque",
+                }
+                if stage_of[name] == finding.stage:
+                    return name
+    return {"motor": "theta_deg", "gap": "x_m", "force": "force_N", "torque": "torque_Nm"}[
+        finding.stage
+    ]
+
+
+def _gap_view(ax, tr, before, after) -> bool:
+    th = tr["theta_deg"]
+    ax.plot(th, before.measured * 1e3, ".", ms=1.5, color="k", label="measured")
+    ax.plot(th, before.predicted * 1e3, ".", ms=1, color="0.5", label="model before")
+    ax.plot(th, after.predicted * 1e3, ".", ms=1, color="C1", label="model after")
+    ax.set_xlabel("pinion angle, deg")
+    ax.set_ylabel("displacement, mm")
+    ax.legend(fontsize=8)
+    return True
+
+
+def _force_view(ax, tr, before, after) -> bool:
+    x = tr["x_m"] * 1e3
+    ax.plot(x, before.measured, ".", ms=1.5, color="k", label="measured")
+    ax.plot(x, before.predicted, ".", ms=1, color="0.5", label="model before")
+    ax.plot(x, after.predicted, ".", ms=1, color="C1", label="model after")
+    ax.set_xlabel("displacement, mm")
+    ax.set_ylabel("force, N")
+    ax.legend(fontsize=8)
+    return True
+
+
+def _mu_view(ax, tr, before, after, against: str) -> bool:
+    if not (tr.has("force_N") and tr.has("torque_Nm")):
+        return False
+    F = tr["force_N"]
+    sel = F > 0.3 * float(np.max(F))
+    if np.sum(sel) < 10:
+        return False
+    den = 2.0 * F[sel] * tr.r_eff_m
+    if against == "speed" and tr.has("disc_speed_rad_s"):
+        xv, xl = tr["disc_speed_rad_s"][sel], "disc speed, rad/s"
+    elif against == "energy" and tr.has("disc_speed_rad_s"):
+        power = np.abs(tr["torque_Nm"] * tr["disc_speed_rad_s"])
+        e = np.concatenate([[0.0], np.cumsum(power[:-1])]) * tr.dt / 1e3
+        xv, xl = e[sel], "energy dissipated, kJ"
+    else:
+        xv, xl = tr.time_s[sel], "time, s"
+    ax.plot(xv, before.measured[sel] / den, ".", ms=1.5, color="k", label="measured T / (2 F r)")
+    ax.plot(xv, before.predicted[sel] / den, ".", ms=1, color="0.5", label="model before")
+    ax.plot(xv, after.predicted[sel] / den, ".", ms=1, color="C1", label="model after")
+    ax.set_xlabel(xl)
+    ax.set_ylabel("apparent friction coefficient")
+    ax.legend(fontsize=8)
+    return True
+
+
+_VIEWS: dict[str, Callable] = {
+    "gap": _gap_view,
+    "force": _force_view,
+    "backlash": _gap_view,
+    "force_hysteresis": _force_view,
+    "friction_speed": lambda ax, tr, b, a: _mu_view(ax, tr, b, a, "speed"),
+    "friction_fade": lambda ax, tr, b, a: _mu_view(ax, tr, b, a, "energy"),
+}
+
+
+def _wrap(text: str, width: int) -> str:
+    words, lines, line = text.split(), [], ""
+    for w in words:
+        if len(line) + len(w) + 1 > width:
+            lines.append(line)
+            line = w
+        else:
+            line = f"{line} {w}".strip()
+    lines.append(line)
+    return "\n".join(lines[:6])
+
+
+def figures_of(result: DiagnosisResult) -> list[tuple[str, Figure]]:
+    """Every figure of a diagnosis, with its file name."""
+    figs: list[tuple[str, Figure]] = [("mismatch.png", mismatch_figure(result))]
+    for k, f in enumerate(result.findings, start=1):
+        figs.append((f"finding_{k}_{f.effect}.png", finding_figure(result, f)))
+    if result.chain_before:
+        figs.append(("chain.png", chain_figure(result)))
+    return figs
+
+
+def _png(fig: Figure) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return buf.getvalue()
+
+
+def figure_bytes(result: DiagnosisResult) -> dict[str, bytes]:
+    """The figures of a diagnosis as PNG bytes, keyed by file name."""
+    return {name: _png(fig) for name, fig in figures_of(result)}
+
+
+def write_diagnosis(
+    result: DiagnosisResult,
+    folder: str | Path,
+    *,
+    extra: dict | None = None,
+    figures: bool = True,
+) -> list[Path]:
+    """Write ``diagnosis.json`` and the figures into ``folder`` (created), atomically:
+    every file is complete under its name or absent. Returns the paths written.
+
+    Parameters
+    ----------
+    result
+        The diagnosis.
+    folder
+        Output folder.
+    extra
+        More keys for ``diagnosis.json`` (e.g. the trace's path).
+    figures
+        Whether to draw the figures too.
+    """
+    from .outputs import atomic_write, json_text
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    text = json_text(result.to_json() | dict(extra or {}))
+    writers = [(folder / "diagnosis.json", lambda tmp: tmp.write_text(text, encoding="utf-8"))]
+    if figures:
+        for name, data in figure_bytes(result).items():
+            writers.append((folder / name, lambda tmp, d=data: tmp.write_bytes(d)))
+    atomic_write(writers)
+    return [path for path, _ in writers]

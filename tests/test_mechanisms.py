@@ -1,0 +1,267 @@
+"""Catalog mechanisms: each hook against the synthetic rig's independent physics.
+
+The rig (:mod:`ewb_ident.rig`) writes every effect on its own (fine-step RK4, its own
+play operator and Dahl state); here each mechanism, given the rig's noise-free inputs,
+must reproduce the rig's noise-free outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ewb_ident import rig
+from ewb_ident.mechanisms import (
+    CATALOG,
+    Backlash,
+    CurrentLimit,
+    ForceHysteresis,
+    FrictionFade,
+    FrictionSpeed,
+    SensorDelay,
+    SensorOffset,
+    Stiction,
+    WedgeLoadTorque,
+    variants,
+)
+from ewb_ident.mechanisms.base import fmt_pm
+from ewb_ident.mechanisms.correction import forward_select
+from ewb_ident.mechanisms.fitting import fit_mechanisms, levenberg_marquardt, make_data
+from ewb_ident.mechanisms.model import motor_states, predict
+from ewb_ident.mechanisms.stiction import STICK_SPEED_RAD_S
+from ewb_ident.params import EWBParams
+from ewb_ident.physics import clamp_force
+from ewb_ident.simulate import _motor_states
+
+P = rig.RigParams()
+QUIET = rig.SensorNoise.none()
+BASE = EWBParams(**{k: getattr(P, k) for k in EWBParams().as_dict()})
+CONTRACT_IDS = {
+    "backlash",
+    "wedge_load_torque",
+    "force_hysteresis",
+    "sensor_delay",
+    "friction_speed",
+    "friction_fade",
+    "sensor_offset",
+    "current_limit",
+    "stiction",
+}
+
+
+def clean(**kwargs):
+    kwargs.setdefault("noise", QUIET)
+    _, truth, run = rig.simulate_rig(return_clean=True, **kwargs)
+    return truth, run
+
+
+def data_for(trace, **kw):
+    sigma = {c: 1.0 for c in ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A")}
+    sigma = {c: s for c, s in sigma.items() if trace.has(c)}
+    fixed = BASE.as_dict() | {"theta0_deg": 0.0}
+    return make_data(trace, sigma, fixed, **kw)
+
+
+# ------------------------------------------------------------------------- registry
+
+
+def test_registry_holds_every_contract_id_with_declared_parameters():
+    assert set(CATALOG) == CONTRACT_IDS
+    for mid, cls in CATALOG.items():
+        assert cls.id == mid
+    for m in variants():
+        infos = m.param_info()
+        assert infos, m.variant
+        for info in infos:
+            assert info.unit and info.doc
+            assert info.lower < info.upper
+        assert m.stage in ("motor", "gap", "force", "torque")
+        assert m.stage in m.stages
+        assert m.hook in (
+            "voltage",
+            "motor_friction",
+            "wedge_angle",
+            "clamp_force",
+            "friction_coefficient",
+            "sensor",
+        )
+    # sensor mechanisms come once per channel they can act on
+    names = [m.variant for m in variants()]
+    assert "sensor_delay[force_N]" in names and "sensor_offset[torque_Nm]" in names
+    assert len(names) == len(set(names))
+
+
+def test_bad_mechanism_settings_are_refused():
+    with pytest.raises(ValueError, match="channel must be one of"):
+        SensorDelay(channel="voltage_V")
+    with pytest.raises(ValueError, match="channel must be one of"):
+        SensorOffset(channel="x_m")
+    with pytest.raises(ValueError, match="unknown parameter"):
+        Backlash().with_values({"gamma": 1.0})
+
+
+def test_plausibility_needs_resolved_parameters_inside_bounds():
+    m = Backlash()
+    assert m.plausible({"beta_deg": 2.0, "side": 1.0}, {"beta_deg": 0.1, "side": None}) == ""
+    assert "outside the plausible range" in m.plausible(
+        {"beta_deg": 90.0, "side": 1.0}, {"beta_deg": 0.1}
+    )
+    assert "three standard errors" in m.plausible({"beta_deg": 0.2, "side": 1.0}, {"beta_deg": 0.1})
+    assert "not resolved" in m.plausible({"beta_deg": 2.0, "side": 1.0}, {"beta_deg": None})
+
+
+def test_value_with_uncertainty_is_rounded_to_the_error():
+    assert fmt_pm(230.4, 15.2) == "230 ± 15"
+    assert fmt_pm(0.03172, 0.00085) == "0.03172 ± 0.00085"
+    assert fmt_pm(1.5, None) == "1.5"
+
+
+# ---------------------------------------------------------------------- seed model
+
+
+def test_without_mechanisms_the_model_is_the_seed_chain():
+    _, run = clean(sample_rate_hz=200.0)
+    tr = run.trace
+    d = data_for(tr)
+    pred = predict("chain", BASE, jnp.asarray(0.0), (), d, 1)
+    for ch in ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A"):
+        ref = run.states[ch]
+        err = np.max(np.abs(np.asarray(pred[ch])[: tr.n] - ref))
+        assert err <= 1e-6 * (np.max(np.abs(ref)) + 1e-12), ch
+    s1 = motor_states(BASE, jnp.asarray(tr["voltage_V"]), tr.dt, 0.0, (), 1)
+    s2 = _motor_states(BASE, jnp.asarray(tr["voltage_V"]), tr.dt, 0.0, 1, "exponential", None)
+    np.testing.assert_array_equal(np.asarray(s1), np.asarray(s2))
+
+
+# ------------------------------------------------------------------ stage mechanisms
+
+
+def test_backlash_play_reproduces_the_rig_wedge_angle():
+    _, run = clean(sample_rate_hz=1000.0, effects=[rig.Backlash(beta_deg=3.0)])
+    theta = jnp.asarray(run.states["theta_deg"])
+    w = Backlash(beta_deg=3.0, side=1.0).wedge_angle(theta, {})
+    np.testing.assert_allclose(np.asarray(w), run.states["theta_w_deg"], atol=1e-9)
+
+
+def test_force_hysteresis_reproduces_the_rig_dahl_state():
+    eff = rig.ForceHysteresis(h=0.03, delta_m=2e-5)
+    _, run = clean(sample_rate_hz=1000.0, effects=[eff])
+    x = jnp.asarray(run.states["x_m"])
+    fb = clamp_force(x, P.F_rt, P.a, P.b, P.c)
+    F = ForceHysteresis(h=0.03, delta_m=2e-5).clamp_force(x, fb, {})
+    # The rig integrates dz/dt with RK4 between samples; the model is exact per sample
+    # increment: they agree to a small fraction of the excess h F.
+    err = np.max(np.abs(np.asarray(F) - run.states["force_N"]))
+    assert err < 0.02 * 0.03 * P.F_rt
+
+
+def test_sensor_delay_shifts_by_a_fractional_number_of_samples():
+    y = jnp.asarray(np.sin(np.linspace(0, 3, 300)))
+    m = SensorDelay(channel="force_N", delay_s=0.0125)
+    ctx = {"dt": 0.005}
+    out = np.asarray(m.read("force_N", y, ctx))
+    k = np.arange(300) - 2.5
+    np.testing.assert_allclose(out[5:], np.interp(k, np.arange(300), np.asarray(y))[5:])
+    back = np.asarray(m.unread("force_N", m.read("force_N", y, ctx), ctx))
+    np.testing.assert_allclose(back[10:-10], np.asarray(y)[10:-10], atol=2e-4)
+    np.testing.assert_array_equal(np.asarray(m.read("x_m", y, ctx)), np.asarray(y))
+
+
+def test_sensor_offset_adds_and_removes_a_constant():
+    m = SensorOffset(channel="torque_Nm", offset=-2.0)
+    y = jnp.linspace(0.0, 5.0, 11)
+    np.testing.assert_allclose(np.asarray(m.read("torque_Nm", y, {})), np.asarray(y) - 2.0)
+    np.testing.assert_allclose(np.asarray(m.unread("torque_Nm", y, {})), np.asarray(y) + 2.0)
+
+
+def test_friction_speed_matches_the_rig_mu():
+    params = dataclasses.replace(P, disc_speed_end_rad_s=30.0)
+    _, run = clean(params=params, effects=[rig.FrictionSpeed(kappa=-0.15, omega_ref_rad_s=50.0)])
+    w = run.states["disc_speed_rad_s"]
+    f = FrictionSpeed(kappa=-0.15).mu_factor({"disc_speed": jnp.asarray(w), "omega_ref": 50.0})
+    np.testing.assert_allclose(P.mu * np.asarray(f), run.states["mu"], rtol=1e-12)
+
+
+def test_friction_fade_follows_the_dissipated_energy():
+    eff = rig.FrictionFade(phi_per_K=4e-3, heat_capacity_J_per_K=1500.0, tau_thermal_s=1e9)
+    _, run = clean(effects=[eff], sample_rate_hz=1000.0)
+    tr = run.trace
+    d = data_for(tr)
+    m = FrictionFade(phi_per_J=4e-3 / 1500.0)
+    pred = predict("torque", BASE, jnp.asarray(0.0), (m,), d, 1)
+    ref = run.states["torque_Nm"]
+    err = np.max(np.abs(np.asarray(pred["torque_Nm"])[: tr.n] - ref))
+    assert err < 2e-3 * np.max(ref)  # rectangle rule for the energy against RK4
+
+
+# ------------------------------------------------------------------ motor mechanisms
+
+
+@pytest.mark.parametrize(
+    ("rig_effect", "mechanism", "tol_deg"),
+    [
+        (rig.WedgeLoadTorque(k_w=3e-5, omega0_rad_s=0.05), WedgeLoadTorque(k_w=3e-5), 1.0),
+        (rig.CurrentLimit(i_max_A=2.0), CurrentLimit(i_max_A=2.0), 1.0),
+        (rig.Stiction(tau_c_Nm=0.02, tau_s_Nm=0.02), Stiction(tau_c_Nm=0.02), 1.0),
+    ],
+    ids=["wedge_load_torque", "current_limit", "stiction"],
+)
+def test_motor_mechanisms_reproduce_the_rig_motor(rig_effect, mechanism, tol_deg):
+    _, run = clean(sample_rate_hz=500.0, effects=[rig_effect], fine_step_s=2e-5)
+    _, plain = clean(sample_rate_hz=500.0)
+    tr = run.trace
+    V = jnp.asarray(tr["voltage_V"])
+    s = motor_states(BASE, V, tr.dt, 0.0, (mechanism,), 4)
+    theta = np.asarray(s[:, 2]) * 180 / math.pi
+    effect = np.max(np.abs(run.states["theta_deg"] - plain.states["theta_deg"]))
+    err = np.max(np.abs(theta - run.states["theta_deg"]))
+    assert effect > 10 * tol_deg  # the effect is large ...
+    assert err < tol_deg  # ... and the mechanism reproduces it
+
+
+def test_stiction_holds_the_actuator_still():
+    # 0.1 V gives a 0.1 A stall current: 0.01 N m of motor torque, under tau_c = 0.02 N m.
+    # The friction switches smoothly over STICK_SPEED_RAD_S (so the fit has gradients):
+    # a held actuator creeps at most at that speed, a free one turns many degrees.
+    volts = jnp.full(200, 0.1)
+    held = motor_states(BASE, volts, 0.005, 0.0, (Stiction(tau_c_Nm=0.02),), 10)
+    free = motor_states(BASE, volts, 0.005, 0.0, (), 10)
+    creep_deg = math.degrees(STICK_SPEED_RAD_S * 1.0)
+    assert np.max(np.abs(np.asarray(held[:, 2]))) < creep_deg
+    assert np.max(np.abs(np.asarray(free[:, 2]))) > 1000 * np.max(np.abs(np.asarray(held[:, 2])))
+
+
+# ------------------------------------------------------------------------- fitting
+
+
+def test_fit_recovers_a_mechanism_parameter_from_a_noise_free_stage():
+    _, run = clean(sample_rate_hz=200.0, effects=[rig.Backlash(beta_deg=2.0)])
+    tr = run.trace
+    d = data_for(tr)
+    f = fit_mechanisms(d, ("gap",), ("p2", "p1", "p0"), (Backlash(),), ("x_m",))
+    assert f.mechanisms[0].values()["beta_deg"] == pytest.approx(2.0, rel=1e-4)
+    assert f.rss < 1e-8 * f.n
+
+
+def test_levenberg_marquardt_solves_a_linear_problem_in_one_step():
+    _, run = clean(sample_rate_hz=200.0)
+    d = data_for(run.trace)
+    f0 = fit_mechanisms(d, ("gap",), ("p2", "p1", "p0"), (), ("x_m",))
+    assert f0.converged and f0.rss < 1e-12
+
+
+def test_forward_selection_picks_the_terms_in_the_data():
+    rng = np.random.default_rng(0)
+    n = 400
+    base = rng.standard_normal((n, 2))
+    terms = rng.standard_normal((n, 5))
+    r = base @ [1.0, -2.0] + 3.0 * terms[:, 3] + rng.standard_normal(n)
+    sel = forward_select(r, base, terms, list("abcde"), threshold=10.0)
+    assert sel.features == ("d",)
+    none = forward_select(rng.standard_normal(n), base, terms, list("abcde"), threshold=10.0)
+    assert none.features == ()
+    assert levenberg_marquardt  # exported
