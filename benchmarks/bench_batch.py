@@ -21,7 +21,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from ewb_ident import rig  # noqa: E402
-from ewb_ident.fit import fit, fit_batch  # noqa: E402
+from ewb_ident.least_squares import fit, fit_batch  # noqa: E402
 
 
 def main(n: int) -> None:

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_fit.py [TRACE]        (default: datasets/steps_200hz.csv)
 
-Warm: ``ewb_ident.fit`` (everything: start values, two weighted solves, Jacobian,
+Warm: ``ewb_ident.least_squares`` (everything: start values, two weighted solves, Jacobian,
 standard errors, metrics) after one call that compiled it, against the peer
 (``scipy_peer.py``: LSODA + least_squares with finite differences) fitting the same 14
 parameters with the same weights from the seed values. Medians of repeated runs.
@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 import scipy_peer  # noqa: E402
 
-from ewb_ident.fit import fit  # noqa: E402
+from ewb_ident.least_squares import fit  # noqa: E402
 from ewb_ident.traces import read_trace  # noqa: E402
 
 ROOT = Path(__file__).parents[1]

@@ -7,6 +7,8 @@ Turn on float64 before use (the CLI does): ``jax.config.update("jax_enable_x64",
 >>> trace = ei.read_trace("datasets/steps_200hz.csv")
 >>> result = ei.fit(trace)              # whole chain from voltage
 >>> result.params[0].a, result.stderr["a"], result.metrics["force_N"]
+>>> posterior = ei.sample(trace)      # emcee posterior of a, b, c, mu, ...
+>>> diagnosis = ei.diagnose(trace)    # where the model misses, and what physics
 
 The names below are imported on first use, so that ``ewb-ident --help`` does not pay
 for importing JAX.
@@ -20,9 +22,16 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 _PUBLIC = {
-    "FitError": "fit",
-    "FitResult": "fit",
-    "fit": "fit",
+    "FitError": "least_squares",
+    "FitResult": "least_squares",
+    "fit": "least_squares",
+    "fit_batch": "least_squares",
+    "DiagnoseError": "diagnose",
+    "DiagnosisResult": "diagnose",
+    "diagnose": "diagnose",
+    "PosteriorResult": "posterior",
+    "SampleError": "posterior",
+    "sample": "posterior",
     "channel_metrics": "metrics",
     "PARAMS": "params",
     "SEED": "params",
@@ -40,13 +49,20 @@ _PUBLIC = {
 __all__ = sorted(_PUBLIC)
 
 if TYPE_CHECKING:
-    from .fit import FitError as FitError
-    from .fit import FitResult as FitResult
-    from .fit import fit as fit
+    from .diagnose import DiagnoseError as DiagnoseError
+    from .diagnose import DiagnosisResult as DiagnosisResult
+    from .diagnose import diagnose as diagnose
+    from .least_squares import FitError as FitError
+    from .least_squares import FitResult as FitResult
+    from .least_squares import fit as fit
+    from .least_squares import fit_batch as fit_batch
     from .metrics import channel_metrics as channel_metrics
     from .params import PARAMS as PARAMS
     from .params import SEED as SEED
     from .params import EWBParams as EWBParams
+    from .posterior import PosteriorResult as PosteriorResult
+    from .posterior import SampleError as SampleError
+    from .posterior import sample as sample
     from .simulate import Integrator as Integrator
     from .simulate import NumericalWarning as NumericalWarning
     from .simulate import simulate_chain as simulate_chain

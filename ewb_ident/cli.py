@@ -80,7 +80,7 @@ def _read(paths: list[Path], stages, mapping, fill_gaps, no_unit_check):
 
 
 def _bad_input_errors() -> tuple[type[Exception], ...]:
-    from .fit import FitError
+    from .least_squares import FitError
     from .traces import TraceError
 
     return (TraceError, FitError)
@@ -111,7 +111,7 @@ def fit(
     no_unit_check: NoUnitCheck = False,
 ) -> None:
     """Least-squares fit; writes OUT/fit.json and prints a summary."""
-    from .fit import fit as run_fit
+    from .least_squares import fit as run_fit
     from .outputs import write_json
     from .report import fit_summary
     from .simulate import EXPONENTIAL, SEED_HEUN
@@ -389,7 +389,7 @@ def report(
     """Validation report: OUT/index.html (self-contained) and PNG figures: data, fit,
     bell curve, parameters with 90 % intervals, errors beside the seed's, MCMC
     diagnostics, and the diagnosis of missing physics."""
-    from .fit import fit as run_fit
+    from .least_squares import fit as run_fit
     from .validation_report import build_report, write_report
 
     post = diag = None

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import FitResult, fit
+from .least_squares import FitResult, fit
 from .params import MODEL_PARAMS, PARAMS, EWBParams
 from .simulate import simulate_chain
 from .traces import Trace

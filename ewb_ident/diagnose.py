@@ -4,7 +4,7 @@ add it to the model, refit, and show the fit improve.
 Steps (:func:`diagnose`)
 ------------------------
 1. **Baseline.** Each stage is fitted teacher-forced from its measured input
-   (:func:`ewb_ident.fit.fit`), and the whole chain from the voltage.
+   (:func:`ewb_ident.least_squares.fit`), and the whole chain from the voltage.
 2. **Locate** (:mod:`ewb_ident.locate`). Each stage's residual is scored against its
    noise floor, phase by phase, with a whiteness test; a stage with a flagged cell is
    *located*. Nothing located: the verdict is ``none``.
@@ -49,8 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from .fit import default_free
-from .fit import fit as fit_stage
+from .least_squares import default_free
+from .least_squares import fit as fit_stage
 from .locate import (
     FLOOR_SCALE,
     PHASES,
@@ -551,7 +551,7 @@ class _Session:
 
 
 def _safe_fit(trace: Trace, stage: str, messages: list[str]):
-    """The baseline fit of one stage by :func:`ewb_ident.fit.fit`, or ``None`` (and a
+    """The baseline fit of one stage by :func:`ewb_ident.least_squares.fit`, or ``None`` (and a
     message) when it fails numerically: the diagnosis then starts from the seed values."""
     try:
         return fit_stage(trace, stage=stage)

@@ -60,7 +60,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import STAGES, FitError, FitResult, _Problem, fit
+from .least_squares import STAGES, FitError, FitResult, _Problem, fit
 from .params import PARAMS, STAGE_PARAMS, ParamInfo
 from .priors import Prior, load_priors
 from .simulate import EXPONENTIAL, Integrator
@@ -632,7 +632,7 @@ def sample(
         ``("force", "torque")``: independent blocks of one posterior), or ``"stages"``
         (every teacher-forced stage the traces can serve).
     free, per_trace, fixed, integrator
-        As for :func:`ewb_ident.fit` (``free`` names may span the given stages).
+        As for :func:`ewb_ident.least_squares` (``free`` names may span the given stages).
     priors
         A TOML file (or parsed tables) overriding ``ewb_ident/priors.toml``.
     noise_model

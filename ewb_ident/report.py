@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .fit import FitResult
+from .least_squares import FitResult
 from .metrics import SEED_PERCENT_ERROR
 from .params import PARAMS, SEED
 

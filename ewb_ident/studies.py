@@ -189,7 +189,7 @@ def make_trace(case: Case, params=None):
 
 def fit_task(case: Case) -> list[dict[str, Any]]:
     """Least squares on one case: one row per free parameter (estimate, truth, error)."""
-    from .fit import fit
+    from .least_squares import fit
 
     trace, truth = make_trace(case)
     t0 = time.perf_counter()

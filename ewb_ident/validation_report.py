@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .fit import FitResult
+from .least_squares import FitResult
 from .metrics import SEED_PERCENT_ERROR, noise_sigma
 from .outputs import atomic_write
 from .params import PARAMS, SEED

@@ -32,7 +32,7 @@ def run(out_dir: Path, progress=None):
 
     jax.config.update("jax_enable_x64", True)
     from ewb_ident import rig
-    from ewb_ident.fit import fit
+    from ewb_ident.least_squares import fit
     from ewb_ident.metrics import SEED_PERCENT_ERROR
     from ewb_ident.params import SEED
     from ewb_ident.simulate import SEED_HEUN, heun_amplification, simulate_chain

@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 from ewb_ident import rig
 from ewb_ident.cli import app
 from ewb_ident.diagnose import DiagnoseError, DiagnosisResult, diagnose
-from ewb_ident.fit import fit
+from ewb_ident.least_squares import fit
 from ewb_ident.outputs import json_text
 from ewb_ident.traces import Trace, write_trace
 

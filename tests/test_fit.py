@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ewb_ident import rig
-from ewb_ident.fit import FitError, fit
+from ewb_ident.least_squares import FitError, fit
 from ewb_ident.outputs import json_text
 from ewb_ident.traces import TraceError, read_trace
 
@@ -168,7 +168,7 @@ def test_noise_levels_are_estimated_not_hand_set(staircase):
 
 def test_batch_fit_matches_single_fits():
     """Vectorised batches give the same answers as one fit per trace."""
-    from ewb_ident.fit import fit_batch
+    from ewb_ident.least_squares import fit_batch
 
     traces = [
         rig.simulate_rig(

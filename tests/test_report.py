@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from ewb_ident.fit import fit
+from ewb_ident.least_squares import fit
 from ewb_ident.traces import read_trace
 from ewb_ident.validation_report import build_report, write_report
 
