@@ -402,14 +402,22 @@ def report(
             typer.echo("sampling the posterior (emcee, two ensembles) ...")
             post = run_sample(trs, stage=stage, seed=seed)
         if diagnosis and len(trs) == 1:
+            from .diagnose import DiagnoseError
             from .diagnose import diagnose as run_diagnose
 
             typer.echo("diagnosing missing physics ...")
-            diag = run_diagnose(trs[0])
+            try:
+                diag = run_diagnose(trs[0])
+            except DiagnoseError as err:
+                typer.echo(f"no diagnosis: {err}")
+        elif diagnosis:
+            typer.echo("no diagnosis: it looks at one trace at a time (run `diagnose` on each)")
     except _bad_input_errors() as err:
         _fail(str(err))
     page, figures = build_report(trs, result, posterior=post, diagnosis=diag)
     path = write_report(out, page, figures)
+    if diag is not None:
+        typer.echo(diag.summary())
     typer.echo(f"wrote {path} ({len(figures)} figures)")
 
 

@@ -24,9 +24,11 @@ Usage (from the repository root)::
     python studies/calibration.py --stage force,torque --repeats 200
     python studies/calibration.py --report-only
 
-Each run appends to ``reports/calibration_<stage>.csv`` (rewritten atomically after every
-repeat, so an interrupted study resumes where it stopped) and rewrites
-``reports/calibration.md`` from every CSV present.
+    ewb-ident study studies/calibration.toml --out reports/calibration
+
+Each run appends to ``reports/calibration/calibration_<stage>.csv`` (rewritten atomically
+after every repeat, so an interrupted study resumes where it stopped) and rewrites
+``reports/calibration/README.md`` from every CSV present.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from ewb_ident.outputs import atomic_write
 from ewb_ident.posterior import sample
 
 ROOT = Path(__file__).resolve().parents[1]
-REPORTS = ROOT / "reports"
+REPORTS = ROOT / "reports" / "calibration"
 SEED = 2025
 NOMINAL = 0.90
 FIELDS = (
@@ -193,8 +195,8 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
-def report() -> str:
-    """``reports/calibration.md`` from every ``calibration_*.csv``."""
+def report(folder: Path = REPORTS) -> str:
+    """The Markdown report from every ``calibration_*.csv`` in ``folder``."""
     lines = [
         "# Calibration of the posterior intervals (simulation-based)",
         "",
@@ -207,7 +209,7 @@ def report() -> str:
         "`rank p` the p-value of a chi-square test of uniformity of the SBC ranks (10 bins).",
         "",
     ]
-    for path in sorted(REPORTS.glob("calibration_*.csv")):
+    for path in sorted(folder.glob("calibration_*.csv")):
         rows = _read(path)
         if not rows:
             continue
@@ -238,33 +240,63 @@ def report() -> str:
     return "\n".join(lines) + "\n"
 
 
+def run(
+    out_dir: Path = REPORTS,
+    progress=None,
+    stage: str = "chain",
+    repeats: int = 100,
+    log=None,
+):
+    """Run (or resume) the study into ``out_dir``; returns (table, Markdown report).
+
+    ``stage`` is ``"chain"`` or comma-separated stages (``"force,torque"``).
+    """
+    import pandas as pd
+
+    jax.config.update("jax_enable_x64", True)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = tuple(stage.split(","))
+    stages = names[0] if len(names) == 1 else names
+    path = out_dir / f"calibration_{'+'.join(names)}.csv"
+    rows = _read(path)
+    done = {int(r["repeat"]) for r in rows}
+    for i in range(repeats):
+        if i not in done:
+            rows += run_repeat(i, stages)
+            _write(path, rows)
+            if log:
+                cov = summarise(rows)["params"]
+                log(
+                    f"repeat {i}: "
+                    + ", ".join(
+                        f"{n} {100 * cov[n]['coverage']:.0f}%" for n in ("a", "b", "c", "mu")
+                    )
+                )
+        if progress:
+            progress(i + 1, repeats)
+    text = report(out_dir)
+    atomic_write([(out_dir / "README.md", lambda tmp: tmp.write_text(text, "utf-8"))])
+    return pd.DataFrame(rows), text
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--stage", default="chain", help="chain, or e.g. force,torque")
     ap.add_argument("--repeats", type=int, default=100)
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--out", type=Path, default=REPORTS)
     args = ap.parse_args()
-    jax.config.update("jax_enable_x64", True)
-    REPORTS.mkdir(exist_ok=True)
-    if not args.report_only:
-        names = tuple(args.stage.split(","))
-        stages = names[0] if len(names) == 1 else names
-        path = REPORTS / f"calibration_{'+'.join(names)}.csv"
-        rows = _read(path)
-        done = {int(r["repeat"]) for r in rows}
-        for i in range(args.repeats):
-            if i in done:
-                continue
-            rows += run_repeat(i, stages)
-            _write(path, rows)
-            cov = summarise(rows)["params"]
-            print(
-                f"repeat {i}: "
-                + ", ".join(f"{n} {100 * cov[n]['coverage']:.0f}%" for n in ("a", "b", "c", "mu")),
-                flush=True,
-            )
-    text = report()
-    atomic_write([(REPORTS / "calibration.md", lambda tmp: tmp.write_text(text, "utf-8"))])
+    if args.report_only:
+        text = report(args.out)
+        atomic_write([(args.out / "README.md", lambda tmp: tmp.write_text(text, "utf-8"))])
+    else:
+        _, text = run(
+            args.out,
+            stage=args.stage,
+            repeats=args.repeats,
+            log=lambda line: print(line, flush=True),
+        )
     print(text)
 
 

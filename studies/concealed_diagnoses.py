@@ -37,7 +37,7 @@ def main() -> None:
     for path in sorted(DATA.glob("*.csv")):
         name = path.stem
         truth = json.loads(path.with_suffix(".truth.json").read_text())
-        planted = [e["id"] for e in truth.get("effects", [])] or ["none"]
+        planted = list(truth.get("effects") or {}) or ["none"]
         trace = read_trace(path)
         t0 = time.perf_counter()
         res = diagnose(trace)

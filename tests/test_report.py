@@ -71,3 +71,14 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
     assert image.size == (1100, 2400)
     extrema = image.getextrema()
     assert extrema[0] < 60 and extrema[1] > 200  # text and figures drawn, not a blank page
+
+
+def test_report_of_a_concealed_trace_names_the_missing_physics(tmp_path):
+    from ewb_ident.diagnose import diagnose
+
+    trace = read_trace(DATA / "concealed" / "force_hysteresis.csv")
+    page, figures = build_report([trace], fit(trace), diagnosis=diagnose(trace))
+    assert "6. Diagnosis: physics the model leaves out" in page
+    assert "force_hysteresis" in page and "friction hysteresis in caliper and wedge" in page
+    assert "NRMSE % before" in page
+    assert {"mismatch.png", "finding_1_force_hysteresis.png"} <= set(figures)
