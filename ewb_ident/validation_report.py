@@ -413,8 +413,15 @@ def _diagnosis_section(doc: Mapping[str, Any], diagnosis: Any, figures: dict[str
         "found": "The baseline model leaves physics out; the catalog explains it:",
         "unexplained": "A mismatch is located, but no catalog mechanism explains it:",
     }
+    if verdict == "none" and doc.get("mismatches"):
+        words["none"] = (
+            "A weak mismatch is located (below), but nothing explains it beyond the noise "
+            "in the whole chain: no missing physics is reported."
+        )
     kind = "ok" if verdict == "none" else "warn"
     out.append(f'<div class="{kind}">{_e(words.get(verdict, verdict))}</div>')
+    for note in doc.get("notes", []):
+        out.append(f"<p>Note: {_e(note)}</p>")
     for f in doc.get("findings", []):
         head = f"<b>{_e(f['effect'])}</b> ({_e(f['stage'])} stage)"
         out.append(f'<div class="finding">{head}: {_e(f["explanation"])}</div>')

@@ -164,7 +164,13 @@ class AbstractMechanism(eqx.Module):
 
     def plausible(self, values: Mapping[str, float], stderr: Mapping[str, float | None]) -> str:
         """``""`` when the fitted parameters are physically plausible and resolved;
-        otherwise the reason, in words (the finding is then not reported)."""
+        otherwise the reason, in words (the finding is then not reported).
+
+        *Resolved*: the parameter's 90 % interval (``± RESOLVED_Z`` standard errors)
+        excludes no effect. This is not the significance test (that is the likelihood
+        ratio / BIC of :func:`ewb_ident.diagnose.diagnose`, which stays valid when the
+        mechanism's parameters are correlated and their standard errors large); it keeps a
+        reported value from being indistinguishable from zero."""
         for info in self.param_info():
             if info.name in self.NUISANCE:
                 continue
@@ -178,10 +184,10 @@ class AbstractMechanism(eqx.Module):
             se = stderr.get(info.name)
             if se is None or not np.isfinite(se):
                 return f"{info.name} is not resolved by the data (no standard error)"
-            if abs(v - _null_value(info)) < 3.0 * se:
+            if abs(v - _null_value(info)) < RESOLVED_Z * se:
                 return (
-                    f"{info.name} = {v:.3g} ± {se:.2g} {info.unit} is within three standard "
-                    "errors of no effect"
+                    f"{info.name} = {v:.3g} ± {se:.2g} {info.unit}: its 90 % interval "
+                    "includes no effect"
                 )
         return ""
 
@@ -261,6 +267,10 @@ def _plausible_range(info: ParamInfo) -> tuple[float, float]:
         pad = 0.005 * (info.upper - info.lower)
         return info.lower + pad, info.upper - pad
     return float(info.lower), float(info.upper)
+
+
+#: Standard errors a resolved parameter lies from no effect (a 90 % interval).
+RESOLVED_Z = 1.645
 
 
 def _null_value(info: ParamInfo) -> float:
