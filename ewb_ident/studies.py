@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from .rig import VARIED_PARAMS
+
 
 class StudyError(ValueError):
     """A study definition that cannot be run as written."""
@@ -258,23 +260,7 @@ def compare_task(case: Case) -> list[dict[str, Any]]:
     return rows
 
 
-_RIG_FIELDS = {
-    "R",
-    "L",
-    "kb",
-    "kT",
-    "M",
-    "v",
-    "p2",
-    "p1",
-    "p0",
-    "F_rt",
-    "a",
-    "c",
-    "b",
-    "mu",
-    "r_eff_m",
-}
+_RIG_FIELDS = {*VARIED_PARAMS, "r_eff_m"}
 
 #: Tasks a study can run on each case: ``task(case) -> list of row dicts``.
 TASKS: dict[str, Callable[[Case], list[dict[str, Any]]]] = {
