@@ -247,6 +247,8 @@ def levenberg_marquardt(
     cost = float(r @ r)
     if not np.isfinite(cost):
         return Solution(u, float("inf"), False, 0)
+    if not np.all(np.isfinite(J)):
+        return Solution(u, cost, False, 0)
     A, g = J.T @ J, J.T @ r
     lam = 1e-3 * float(np.max(np.diag(A))) if A.size else 0.0
     nu = 2.0
@@ -268,11 +270,15 @@ def levenberg_marquardt(
         predicted = float(-2.0 * g @ delta - delta @ A @ delta)
         rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
+            r_j, J_j, _ = _res_jac(problem, jnp.asarray(u_new), data)
+            J_j = np.asarray(J_j)
+            if not np.all(np.isfinite(J_j)):  # a step to where the model has no slope
+                lam, nu = lam * nu, nu * 2.0
+                continue
             small = cost - cost_new <= rtol * cost
             tiny = np.linalg.norm(delta) <= xtol * (np.linalg.norm(u) + xtol)
             u, cost = u_new, cost_new
-            r, J, _ = _res_jac(problem, jnp.asarray(u), data)
-            r, J = np.asarray(r), np.asarray(J)
+            r, J = np.asarray(r_j), J_j
             A, g = J.T @ J, J.T @ r
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
