@@ -684,6 +684,13 @@ def diagnose(
     ------
     DiagnoseError
         The trace lacks the columns any stage needs, or ``catalog`` names unknown ids.
+
+    Notes
+    -----
+    Each call compiles models for its trace's shape and the mechanisms it tries. A
+    process that diagnoses many traces of different shapes should call
+    ``jax.clear_caches()`` between them (``studies/diagnosis_accuracy.py`` does): the
+    compiled code otherwise accumulates until the kernel's limit on memory maps.
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}

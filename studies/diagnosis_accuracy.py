@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import gc
 import io
 import json
 import math
@@ -460,6 +461,10 @@ def run(out_dir: Path, progress=None, shard: tuple[int, int] = (0, 1), cases: in
     for n, (i, kind, ids) in enumerate(todo):
         if i not in done:
             _append(path, run_case(i, kind, ids))
+            # Every case compiles its own mechanism models (shapes and mechanisms differ):
+            # drop them, or a long run exhausts the process's memory maps.
+            jax.clear_caches()
+            gc.collect()
         if progress:
             progress(n + 1, len(todo))
     rows = _all_rows(out_dir)
