@@ -49,6 +49,7 @@ and were set on rig settings other than those the accuracy study measures on.
 from __future__ import annotations
 
 import time
+from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -110,6 +111,18 @@ MAX_MECHANISMS = 3
 X_SMOOTH_S = 0.01
 #: Most stages given a generic correction.
 MAX_CORRECTIONS = 2
+
+#: How to record a trace that separates two mechanisms a trace could not tell apart.
+SEPARATE: defaultdict[frozenset[str], str] = defaultdict(
+    str,
+    {
+        frozenset(("friction_speed", "friction_fade")): (
+            "when the disc slows steadily while the pads heat up, speed and dissipated "
+            "energy rise and fall together; disc-speed steps, or a cooled-down repeat, "
+            "separate them"
+        ),
+    },
+)
 
 STAGE_ORDER: tuple[str, ...] = ("motor", "gap", "force", "torque")
 MOTOR_PARAMS: tuple[str, ...] = ("R", "L", "kb", "kT", "M", "v")
@@ -179,6 +192,7 @@ class Finding:
     phases: tuple[str, ...] = ()
     depends_on: tuple[str, ...] = ()
     catalog: bool = True
+    alternatives: tuple[tuple[str, float], ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -197,6 +211,7 @@ class Finding:
         }
         if self.depends_on:
             out["depends_on"] = list(self.depends_on)
+        out["alternatives"] = [{"effect": e, "delta_bic": _num(d)} for e, d in self.alternatives]
         return out
 
 
@@ -747,6 +762,7 @@ def diagnose(
     current = dict(ses.base_fits)  # stage -> latest fit covering it
     still = set(located)
     last_round: list[tuple[Candidate, AugFit, dict[str, float], AbstractMechanism]] = []
+    alternatives: dict[str, list[tuple[str, float]]] = {}
     for rnd in range(1, max_mechanisms + 1):
         if not still:
             break
@@ -801,6 +817,15 @@ def diagnose(
         cand, f1, ev, mech = best
         selected.append(mech)
         evidence[mech.variant] = ev
+        # Rivals the trace cannot tell apart from the choice: also supported, and within
+        # the evidence threshold of it (a Bayes factor under about 150).
+        alternatives[mech.variant] = [
+            (r[0].effect, r[0].delta_bic)
+            for r in ok
+            if r is not best
+            and r[0].effect != cand.effect
+            and r[0].delta_bic - cand.delta_bic < bic_threshold
+        ]
         for s in f1.stages:
             current[s] = f1
         for n in ses.free_of(f1.stages):
@@ -930,7 +955,8 @@ def diagnose(
             fit_m = current[mech.stage] if mech.stage in current else None
             se = _stderr_of(mech, fit_m, ses)
             ev = evidence[mech.variant] | _prefixed(chain_ev.get(mech.variant))
-            findings.append(_finding(ses, mech, se, ev, flagged_cells, before, after))
+            alts = tuple(alternatives.get(mech.variant, ()))
+            findings.append(_finding(ses, mech, se, ev, flagged_cells, before, after, alts))
 
     notes = list(ses.base_messages) + notes_explain
     for m, ev in unconfirmed:
@@ -1062,7 +1088,7 @@ def _metric_words(ch: str, before, after) -> str:
     return f"{name} NRMSE {b:.2f} % → {a:.2f} %"
 
 
-def _finding(ses, mech, se, ev, flagged, before, after) -> Finding:
+def _finding(ses, mech, se, ev, flagged, before, after, alternatives=()) -> Finding:
     vals = mech.values()
     stages = ses.mechanism_stages(mech)
     phases = _phases_of(mech.stage, flagged, stages)
@@ -1074,6 +1100,11 @@ def _finding(ses, mech, se, ev, flagged, before, after) -> Finding:
         + (f"; {words}" if words else "")
         + f", ΔBIC {ev['delta_bic']:.0f}"
     )
+    if alternatives:
+        rivals = _and([f"{e} (ΔBIC {d:.0f})" for e, d in alternatives])
+        text += f". But {rivals} explains it about as well: this trace cannot tell them apart"
+        hints = [SEPARATE[frozenset((mech.id, e))] for e, _ in alternatives]
+        text += "".join(f"; {h}" for h in hints if h)
     return Finding(
         effect=mech.id,
         variant=mech.variant,
@@ -1086,6 +1117,7 @@ def _finding(ses, mech, se, ev, flagged, before, after) -> Finding:
         metrics_before=before,
         metrics_after=after,
         phases=phases,
+        alternatives=tuple(alternatives),
     )
 
 
