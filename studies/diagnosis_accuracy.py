@@ -338,7 +338,8 @@ def summarise(rows: list[dict[str, str]]) -> str:
         "# Diagnosis accuracy on freshly generated cases",
         "",
         "Produced by `python studies/diagnosis_accuracy.py` (or `ewb-ident study "
-        "studies/diagnosis_accuracy.toml`); the case table is `cases.csv`. How the cases are "
+        "studies/diagnosis_accuracy.toml`); the case tables are `cases*.csv` (one per "
+        "shard). How the cases are "
         "drawn is in the script's docstring: rig units varied by 5 %, steps/position/"
         "staircase profiles, 100 Hz to 1 kHz, noise 0.5x to 2x, effect sizes about 0.5x "
         "to 2x of a typical size; seed "
