@@ -234,3 +234,26 @@ def test_thresholds_are_reported():
     _, res = case("clean")
     th = res.to_json()["thresholds"]
     assert th["bic_threshold"] == 10.0 and math.isfinite(th["score_min"])
+
+
+def test_a_rival_the_trace_cannot_tell_apart_is_named():
+    from types import SimpleNamespace
+
+    from ewb_ident.diagnose import _finding
+    from ewb_ident.mechanisms import FrictionFade
+
+    mech = FrictionFade(phi_per_J=2e-6)
+    ses = SimpleNamespace(
+        mechanism_stages=lambda m: ("torque",),
+        ctx={"energy_total_J": 3e4, "omega_ref": 40.0},
+    )
+    metrics = {"torque_Nm": {"rmse": 1.0, "nrmse_pct": 0.5}}
+    ev = {"delta_bic": -50.0}
+    f = _finding(
+        ses, mech, {"phi_per_J": 1e-7}, ev, [], metrics, metrics, [("friction_speed", -45.0)]
+    )
+    assert "friction_speed (ΔBIC -45) explains it about as well" in f.explanation
+    assert "cannot tell them apart" in f.explanation and "disc-speed steps" in f.explanation
+    assert f.to_json()["alternatives"] == [{"effect": "friction_speed", "delta_bic": -45.0}]
+    alone = _finding(ses, mech, {"phi_per_J": 1e-7}, ev, [], metrics, metrics)
+    assert "cannot tell" not in alone.explanation and alone.to_json()["alternatives"] == []
