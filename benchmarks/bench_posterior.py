@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import scipy_peer  # noqa: E402
 
 from ewb_ident import rig  # noqa: E402
-from ewb_ident.outputs import atomic_write, write_json  # noqa: E402
+from ewb_ident.outputs import write_json, write_text  # noqa: E402
 from ewb_ident.posterior import _batched, _build, _starts, _v_logp_q, sample  # noqa: E402
 from ewb_ident.priors import load_priors  # noqa: E402
 
@@ -234,7 +234,7 @@ Same posterior: the two log-probabilities differ by at most {lp_diff:.2e} at the
 {W} starting walkers; seeded alike, the peer's chain equals ewb-ident's for the first
 {identical_steps} of {args.peer_steps} steps.
 """
-    atomic_write([(REPORTS / "bench_posterior.md", lambda tmp: tmp.write_text(md, "utf-8"))])
+    write_text(REPORTS / "bench_posterior.md", md)
     print(md)
 
 

@@ -93,7 +93,7 @@ from .mechanisms.fitting import (
     make_data,
 )
 from .mechanisms.model import STAGE_OUTPUTS, n_substeps
-from .metrics import channel_metrics, noise_sigma
+from .metrics import channel_metrics, noise_floor, noise_sigma
 from .params import PARAMS, EWBParams
 from .physics import clamp_force
 from .simulate import _motor_states
@@ -369,10 +369,6 @@ def _metrics_json(m: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any
 # ----------------------------------------------------------------------------- session
 
 
-def _floor(y: np.ndarray) -> float:
-    return 1e-6 * float(np.max(y) - np.min(y)) + 1e-12
-
-
 def _order(stages) -> tuple[str, ...]:
     if tuple(stages) == ("chain",):
         return ("chain",)
@@ -397,7 +393,9 @@ class _Session:
                 "force_N, or force_N and torque_Nm); record these channels"
             )
         self.noise = {
-            ch: max(noise_sigma(trace[ch]), _floor(trace[ch])) for ch in CHANNELS if trace.has(ch)
+            ch: max(noise_sigma(trace[ch]), noise_floor(trace[ch]))
+            for ch in CHANNELS
+            if trace.has(ch)
         }
         self.labels = phase_labels(trace)
         self.cache: dict[tuple, AugFit] = {}

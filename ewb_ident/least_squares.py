@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .metrics import SEED_PERCENT_ERROR, channel_metrics, noise_sigma
+from .metrics import SEED_PERCENT_ERROR, channel_metrics, noise_floor, noise_sigma
 from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .physics import brake_torque, clamp_force, gap
 from .simulate import EXPONENTIAL, Integrator, _motor_states, heun_amplification
@@ -446,7 +446,9 @@ def _bell_grid_start(
             d
             | {
                 "sigma": {
-                    "force_N": jnp.asarray(max(noise_sigma(t["force_N"]), _floor(t["force_N"])))
+                    "force_N": jnp.asarray(
+                        max(noise_sigma(t["force_N"]), noise_floor(t["force_N"]))
+                    )
                 }
             }
             for d, t in zip(tdata, traces, strict=True)
@@ -507,7 +509,7 @@ class _Setup:
     def sensor_sigma(self) -> list[dict[str, float]]:
         """Noise levels from the data alone (floored), the first weights."""
         return [
-            {ch: max(s, _floor(t[ch])) for ch, s in nz.items()}
+            {ch: max(s, noise_floor(t[ch])) for ch, s in nz.items()}
             for t, nz in zip(self.traces, self.noise, strict=True)
         ]
 
@@ -781,12 +783,6 @@ def _stack(datas: Sequence[dict]) -> dict:
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *datas)
 
 
-def _floor(y: np.ndarray) -> float:
-    """Smallest noise level a channel is weighted with: a noise-free channel would
-    otherwise get an infinite weight."""
-    return 1e-6 * float(np.max(y) - np.min(y)) + 1e-12
-
-
 def _to_u(problem: _Problem, values: Mapping[str, float], base: EWBParams, tdata) -> jnp.ndarray:
     """The unconstrained vector for start ``values`` (SI; ``"name[k]"`` per trace)."""
     defaults = base.as_dict()
@@ -805,7 +801,7 @@ def _residual_sigma(r, channels, traces, old):
         s = {}
         for ch in chs:
             rk = r[i : i + t.n] * sig[ch]
-            s[ch] = max(float(np.sqrt(np.mean(rk * rk))), _floor(t[ch]))
+            s[ch] = max(float(np.sqrt(np.mean(rk * rk))), noise_floor(t[ch]))
             i += t.n
         out.append(s)
     return out

@@ -51,6 +51,13 @@ def channel_metrics(sim: ArrayLike, meas: ArrayLike) -> dict[str, float | None]:
     }
 
 
+def noise_floor(y: ArrayLike) -> float:
+    """Smallest noise level a channel is weighted with, in its unit: a noise-free channel
+    would otherwise get an infinite weight (1e-6 of its range)."""
+    y = np.asarray(y, float)
+    return 1e-6 * float(np.max(y) - np.min(y)) + 1e-12
+
+
 def noise_sigma(y: ArrayLike) -> float:
     """Standard deviation of white sensor noise on a sampled channel, robustly estimated.
 

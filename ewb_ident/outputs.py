@@ -101,9 +101,13 @@ def atomic_write(writers: Sequence[tuple[Path, Writer]]) -> None:
             tmp.unlink(missing_ok=True)
 
 
-def write_json(path: str | os.PathLike[str], document: Any) -> Path:
-    """Write ``document`` as JSON to ``path`` atomically (see :func:`json_text`)."""
+def write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_write`)."""
     path = Path(path)
-    text = json_text(document)
     atomic_write([(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))])
     return path
+
+
+def write_json(path: str | os.PathLike[str], document: Any) -> Path:
+    """Write ``document`` as JSON to ``path`` atomically (see :func:`json_text`)."""
+    return write_text(path, json_text(document))

@@ -45,7 +45,7 @@ import numpy as np
 from scipy import stats as sps
 
 from ewb_ident import rig
-from ewb_ident.outputs import atomic_write
+from ewb_ident.outputs import write_text
 from ewb_ident.posterior import sample
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -154,7 +154,7 @@ def _write(path: Path, rows: list[dict]) -> None:
     w.writeheader()
     w.writerows(rows)
     text = buf.getvalue()
-    atomic_write([(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))])
+    write_text(path, text)
 
 
 def _wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -276,7 +276,7 @@ def run(
         if progress:
             progress(i + 1, repeats)
     text = report(out_dir)
-    atomic_write([(out_dir / "README.md", lambda tmp: tmp.write_text(text, "utf-8"))])
+    write_text(out_dir / "README.md", text)
     return pd.DataFrame(rows), text
 
 
@@ -289,7 +289,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.report_only:
         text = report(args.out)
-        atomic_write([(args.out / "README.md", lambda tmp: tmp.write_text(text, "utf-8"))])
+        write_text(args.out / "README.md", text)
     else:
         _, text = run(
             args.out,

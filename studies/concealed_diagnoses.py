@@ -20,7 +20,7 @@ jax.config.update("jax_enable_x64", True)
 
 from ewb_ident.diagnose import diagnose  # noqa: E402
 from ewb_ident.figures import write_diagnosis  # noqa: E402
-from ewb_ident.outputs import atomic_write  # noqa: E402
+from ewb_ident.outputs import write_text  # noqa: E402
 from ewb_ident.traces import read_trace  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,7 +75,7 @@ def main() -> None:
     for name, *_, first, _ in rows:
         lines.append(f"- **{name}**: {first}")
     text = "\n".join(lines) + "\n"
-    atomic_write([(OUT / "README.md", lambda tmp: tmp.write_text(text, encoding="utf-8"))])
+    write_text(OUT / "README.md", text)
     print(text)
 
 

@@ -45,6 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from ewb_ident.outputs import write_text
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "diagnosis_accuracy"
 SEED = 20261123
@@ -264,12 +266,6 @@ def _read(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-def _write_text(path: Path, text: str) -> None:
-    from ewb_ident.outputs import atomic_write
-
-    atomic_write([(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))])
-
-
 def _all_rows(out_dir: Path) -> list[dict[str, str]]:
     """Every case run so far: ``cases.csv`` and the shards' ``cases.shard*.csv``."""
     rows = {}
@@ -285,7 +281,7 @@ def _append(path: Path, row: dict[str, Any]) -> None:
     w = csv.DictWriter(buf, fieldnames=FIELDS)
     w.writeheader()
     w.writerows(rows)
-    _write_text(path, buf.getvalue())
+    write_text(path, buf.getvalue())
 
 
 def _cell(v: Any) -> str:
@@ -297,6 +293,11 @@ def _cell(v: Any) -> str:
 
 
 # ----------------------------------------------------------------------------- report
+
+
+def _listing(title: str, items: list[str], sep: str = "; ") -> list[str]:
+    """A paragraph ``title: item, item.`` (no lines when there are no items)."""
+    return ["", f"{title}: {sep.join(items)}."] if items else []
 
 
 def summarise(rows: list[dict[str, str]]) -> str:
@@ -400,46 +401,38 @@ def summarise(rows: list[dict[str, str]]) -> str:
             counts.append(str(k) if k else "")
         lines.append(f"| {t} | " + " | ".join(counts) + " |")
     fa = clean[clean["verdict"] != "none"]
-    if len(fa):
-        lines += [
-            "",
-            "False alarms: "
-            + ", ".join(
-                f"case {c}: {f or v}"
-                for c, f, v in zip(fa["case"], fa["found"], fa["verdict"], strict=True)
-            )
-            + ".",
-        ]
     missed = pair[~named]
-    if len(missed):
-        lines += [
-            "",
-            "Two-effect traces where an effect was not named: "
-            + "; ".join(
-                f"case {c}: {t} -> {f or 'nothing'}"
-                for c, t, f in zip(missed["case"], missed["truth"], missed["found"], strict=True)
-            )
-            + ".",
-        ]
     wrong = single[single["top1"] != single["truth"]]
-    if len(wrong):
-        lines += [
-            "",
-            "Single effects not named first: "
-            + "; ".join(
-                f"case {c}: {t} ({p}, {r:g} Hz, visibility {v:.1f}) -> {f or 'nothing'}"
-                for c, t, p, r, v, f in zip(
-                    wrong["case"],
-                    wrong["truth"],
-                    wrong["profile"],
-                    pd.to_numeric(wrong["sample_rate_hz"]),
-                    wrong["visibility"],
-                    wrong["found"],
-                    strict=True,
-                )
+    lines += _listing(
+        "False alarms",
+        [
+            f"case {c}: {f or v}"
+            for c, f, v in zip(fa["case"], fa["found"], fa["verdict"], strict=True)
+        ],
+        ", ",
+    )
+    lines += _listing(
+        "Two-effect traces where an effect was not named",
+        [
+            f"case {c}: {t} -> {f or 'nothing'}"
+            for c, t, f in zip(missed["case"], missed["truth"], missed["found"], strict=True)
+        ],
+    )
+    lines += _listing(
+        "Single effects not named first",
+        [
+            f"case {c}: {t} ({p}, {r:g} Hz, visibility {v:.1f}) -> {f or 'nothing'}"
+            for c, t, p, r, v, f in zip(
+                wrong["case"],
+                wrong["truth"],
+                wrong["profile"],
+                pd.to_numeric(wrong["sample_rate_hz"]),
+                wrong["visibility"],
+                wrong["found"],
+                strict=True,
             )
-            + ".",
-        ]
+        ],
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -470,7 +463,7 @@ def run(out_dir: Path, progress=None, shard: tuple[int, int] = (0, 1), cases: in
             progress(n + 1, len(todo))
     rows = _all_rows(out_dir)
     text = summarise(rows)
-    _write_text(out_dir / "README.md", text)
+    write_text(out_dir / "README.md", text)
     return pd.DataFrame(rows), text
 
 
@@ -483,7 +476,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.report_only:
         text = summarise(_all_rows(args.out))
-        _write_text(args.out / "README.md", text)
+        write_text(args.out / "README.md", text)
         print(text)
         return
     k, n = (int(v) for v in args.shard.split("/"))
