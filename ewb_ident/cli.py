@@ -25,6 +25,8 @@ app = typer.Typer(
 )
 
 EXIT_BAD_INPUT = 2
+#: Done and written, but not trustworthy: not converged, or outside the stated acceptance.
+EXIT_UNTRUSTWORTHY = 3
 
 Traces = Annotated[list[Path], typer.Argument(help="Trace files (.csv, .parquet, .mat).")]
 OutDir = Annotated[Path, typer.Option("--out", "-o", help="Output folder (created if absent).")]
@@ -135,6 +137,8 @@ def fit(
     write_json(out / "fit.json", document)
     typer.echo(fit_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
+    if result.status != "ok":
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
 @app.command()

@@ -319,12 +319,12 @@ class DiagnosisResult:
     def summary(self) -> str:
         """A short plain-language summary (for the terminal)."""
         lines = [f"diagnosis of {self.trace_name}: {self.verdict}"]
-        if self.verdict == "none" and not self.mismatches:
+        if not self.mismatches:
             lines.append("  every stage fits to the sensor noise; no missing physics is located.")
-        elif self.verdict == "none":
+        elif self.verdict == "unexplained" and not self.findings:
             lines.append(
-                "  a weak mismatch is located, but nothing explains it beyond the noise in "
-                "the whole chain; no missing physics is reported."
+                "  a mismatch is located, but nothing explains it beyond the noise in the "
+                "whole chain: unexplained (where: below)."
             )
         if self.mismatches:
             lines.append("  where the model misses (most severe first):")
@@ -920,7 +920,9 @@ def diagnose(
     def metrics_of(f: AugFit | None) -> dict[str, dict[str, float | None]]:
         if f is None:
             return {}
-        return {ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items()}
+        return {
+            ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)
+        }
 
     stage_before = {
         s: {
@@ -971,12 +973,13 @@ def diagnose(
     elif findings:
         verdict = "unexplained"
     else:
-        verdict = "none"
+        # Located but not explained: say so, and where (never "none").
+        verdict = "unexplained"
         notes.append(
-            "a weak mismatch is located ("
+            "a mismatch is located ("
             + ", ".join(f"{m.stage} stage, {m.phase}: {m.score:.1f}x" for m in flagged_cells[:3])
             + " the noise), but neither a catalog mechanism nor a generic correction "
-            "explains it beyond the noise in the whole chain: no missing physics is reported"
+            "explains it beyond the noise in the whole chain: unexplained"
         )
     timings["total"] = time.perf_counter() - t_start
     base_metrics = metrics_of(chain_fits[0]) if chain_ok else {}

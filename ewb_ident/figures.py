@@ -94,7 +94,7 @@ def mismatch_figure(result: DiagnosisResult) -> Figure:
 
 def chain_figure(result: DiagnosisResult) -> Figure:
     """The whole chain from the voltage, each channel, before and after."""
-    chans = [ch for _, ch in _STAGE_CHANNELS if ch in result.chain_before]
+    chans = [ch for _, ch in _STAGE_CHANNELS if ch in result.chain_before and result.trace.has(ch)]
     fig = Figure(figsize=(10, 1.8 * max(len(chans), 1) + 0.8), layout="constrained")
     axes = fig.subplots(max(len(chans), 1), 1, sharex=True, squeeze=False)[:, 0]
     t = result.trace.time_s

@@ -21,7 +21,6 @@ The solver is optimistix's Levenberg-Marquardt; its result code is always checke
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -32,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .initial import bell_start, motor_lag, motor_start
 from .metrics import SEED_PERCENT_ERROR, channel_metrics, noise_floor, noise_sigma
 from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .physics import brake_torque, clamp_force, gap
@@ -66,31 +66,74 @@ def stage_inputs(stage: str) -> tuple[str, ...]:
 
 
 def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
-    """The parameters a fit varies when the user does not say.
+    """The parameters a fit varies when the user does not say: only what the recorded
+    channels can determine (see :func:`structural_notes` for the words).
 
-    Motor: ``kb``, ``M``, ``v`` and the start angle; ``R`` and ``L`` too when current is
-    recorded (without it, voltage -> angle identifies only three combinations of the
-    motor's parameters). ``kT`` stays fixed: with no load-torque measurement only the
-    ratios ``M/kT`` and ``v/kT`` are identified.
+    Motor: with current, ``R``, ``L``, ``kb``, ``M``, ``v`` and the start angle. From
+    voltage and angle alone only two combinations are identified (gain
+    ``kT/(R v + kT kb)`` and time constant ``M R/(R v + kT kb)``), so only ``kb`` and
+    ``M`` are fitted: ``R`` and ``L`` stay nominal and ``v`` is held at a small value
+    (:func:`held_viscous_friction`), so ``kb`` carries the damping. ``kT`` always stays
+    fixed: with no load-torque measurement only ratios to it are identified.
     Gap: ``p2, p1, p0``. Force: ``F_rt, a, b, c`` (a rig's rated force differs from the
     seed's 3500 N, and a wrong fixed F_rt biases a, b, c and mu).
-    Torque: ``mu``. Chain: each stage's defaults for the stages whose output is recorded
-    (the gap polynomial only when ``x_m`` is, since otherwise it trades off with ``c``).
+    Torque: ``mu``. Chain: the gap polynomial when ``x_m`` is recorded (otherwise it
+    trades off with ``c``); the bell when force or torque is; ``mu`` only when both
+    force and torque are (torque alone fixes only the product ``mu F_rt``).
     """
     if stage == "motor":
-        with_current = all(t.has("current_A") for t in traces)
-        return ("R", "L") * with_current + ("kb", "M", "v", "theta0_deg")
+        if all(t.has("current_A") for t in traces):
+            return ("R", "L", "kb", "M", "v", "theta0_deg")
+        return ("kb", "M", "theta0_deg")
     if stage == "gap":
         return ("p2", "p1", "p0")
     if stage == "force":
         return ("F_rt", "a", "b", "c")
     if stage == "torque":
         return ("mu",)
+    has = {ch: any(t.has(ch) for t in traces) for ch in ("x_m", "force_N", "torque_Nm")}
     free = list(default_free("motor", traces))
-    for s in ("gap", "force", "torque"):
-        if any(t.has(STAGE_COLUMNS[s][1]) for t in traces):
-            free += default_free(s, traces)
+    if has["x_m"]:
+        free += default_free("gap", traces)
+    if has["force_N"] or has["torque_Nm"]:
+        free += default_free("force", traces)
+    if has["force_N"] and has["torque_Nm"]:
+        free += default_free("torque", traces)
     return tuple(free)
+
+
+def structural_notes(stage: str, traces: Sequence[Trace], free: Sequence[str]) -> list[str]:
+    """What the recorded channels cannot determine, in words (for the fit's warnings)."""
+    notes = []
+    fixed = set(MODEL_PARAMS) - set(free)
+    if stage in ("motor", "chain"):
+        if not all(t.has("current_A") for t in traces) and {"R", "L", "v"} & fixed:
+            notes.append(
+                "no current_A: from voltage and angle the motor identifies only its gain "
+                "kT/(R v + kT kb) and mechanical time constant M R/(R v + kT kb) (both "
+                "reported under 'derived'); R, L and v are held fixed, so kb and M are "
+                "effective values"
+            )
+    if stage == "chain":
+        names = [t.name for t in traces]
+        if not any(t.has("torque_Nm") for t in traces):
+            notes.append(
+                f"no torque_Nm in {', '.join(names)}: mu is not determined by this trace "
+                "and is held at its nominal value"
+            )
+        elif not any(t.has("force_N") for t in traces) and "mu" in fixed:
+            notes.append(
+                "no force_N: the torque fixes only the product mu F_rt; mu is held at its "
+                "nominal value and F_rt is an effective value"
+            )
+        if not any(t.has("x_m") for t in traces):
+            notes.append(
+                "no x_m: the gap polynomial is held at its nominal value, so c and a are "
+                "measured in the nominal polynomial's displacement"
+            )
+        if not any(t.has("force_N") or t.has("torque_Nm") for t in traces):
+            notes.append("no force_N or torque_Nm: a, b, c and mu are not determined")
+    return notes
 
 
 # ----------------------------------------------------------------------------- problem
@@ -221,6 +264,12 @@ class FitResult:
         level the final weights used (from the residuals), in the channel's unit.
     converged
         Whether the solver reported success on every solve.
+    acceptable
+        Whether the fit passes the acceptance this tool states: a bell that is not
+        flat (``b`` >= :data:`FLAT_BELL_B`) and force and torque percent errors within
+        the seed paper's :data:`SEED_ACCEPTANCE_PCT`. A channel missing its noise floor
+        by more than :data:`MISFIT_RATIO` is a warning, not a rejection (the diagnosis
+        explains it).
     message
         The solver's result, in words.
     n_steps
@@ -253,6 +302,7 @@ class FitResult:
     noise: tuple[dict[str, float], ...]
     sigma: tuple[dict[str, float], ...]
     converged: bool
+    acceptable: bool
     message: str
     n_steps: int
     cost: float
@@ -261,6 +311,13 @@ class FitResult:
     u: np.ndarray = field(repr=False)
     problem: _Problem = field(repr=False)
     data: dict = field(repr=False)
+
+    @property
+    def status(self) -> str:
+        """``ok``, ``not_converged`` or ``poor_fit`` (the CLI exits 3 unless ``ok``)."""
+        if not self.converged:
+            return "not_converged"
+        return "ok" if self.acceptable else "poor_fit"
 
     @property
     def values(self) -> dict[str, float]:
@@ -298,6 +355,8 @@ class FitResult:
             "stderr": stderr,
             "metrics": self.metrics,
             "converged": self.converged,
+            "acceptable": self.acceptable,
+            "status": self.status,
             "stage": self.stage,
             "free": list(self.free),
             "shared": shared,
@@ -311,12 +370,29 @@ class FitResult:
             },
             "condition_number": _finite_or_none(self.condition_number),
             "solver": {"message": self.message, "steps": self.n_steps, "cost": self.cost},
+            "derived": motor_combinations(self.params[0]),
             "seed_percent_error": SEED_PERCENT_ERROR,
             "warnings": list(self.warnings),
             "stderr_note": (
                 "null: parameter fixed, or not identified by the data (singular Jacobian)"
             ),
         }
+
+
+def motor_combinations(p: EWBParams) -> dict[str, float]:
+    """The motor's combinations that voltage and angle alone identify (SI).
+
+    ``motor_gain_rad_per_V_s``: no-load speed per volt, ``kT / (R v + kT kb)``;
+    ``motor_time_constant_s``: mechanical time constant, ``M R / (R v + kT kb)``;
+    ``electrical_time_constant_s``: ``L / R``.
+    """
+    R, L, kb, kT, M, v = (float(getattr(p, n)) for n in ("R", "L", "kb", "kT", "M", "v"))
+    damping = R * v + kT * kb
+    return {
+        "motor_gain_rad_per_V_s": kT / damping,
+        "motor_time_constant_s": M * R / damping,
+        "electrical_time_constant_s": L / R,
+    }
 
 
 def _finite(a: np.ndarray) -> np.ndarray:
@@ -338,6 +414,31 @@ def _trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
     theta0 = float(np.median(trace["theta_deg"][:5])) if trace.has("theta_deg") else 0.0
     d["theta0_deg"] = jnp.asarray(theta0)
     return d
+
+
+def _check_fixed(stage: str, fixed: Mapping[str, float], free: Iterable[str] | None) -> None:
+    """Every fixed value names a model parameter, is finite and inside its bounds, and is
+    not also asked to vary."""
+    for name, value in fixed.items():
+        if name not in MODEL_PARAMS:
+            close = [n for n in MODEL_PARAMS if n.lower() == name.lower()]
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise FitError(
+                f"--fix: unknown parameter {name!r}{hint}; the model's parameters are "
+                f"{', '.join(MODEL_PARAMS)}"
+            )
+        info = PARAMS[name]
+        v = float(value)
+        if not np.isfinite(v) or (info.transform != "affine" and not info.inside(v)):
+            raise FitError(
+                f"--fix: {name}={value!r} is outside its bounds ({info.lower:g} < {name} < "
+                f"{info.upper:g} {info.unit}); give a finite value inside them"
+            )
+    both = sorted(set(fixed) & set(free or ()))
+    if both:
+        raise FitError(
+            f"{', '.join(both)} cannot be both fixed (--fix) and free (--free); drop one"
+        )
 
 
 def _check_request(
@@ -366,21 +467,36 @@ def _check_request(
                 )
 
 
+def held_viscous_friction(traces: Sequence[Trace], base: EWBParams) -> float:
+    """The viscous friction held fixed when the motor is fitted without current (SI).
+
+    The nominal ``v``, or 20 % of the measured total damping ``(R v + kT kb)/R =
+    kT/(K R)`` if that is lower (``K``: no-load speed per volt from
+    :func:`ewb_ident.initial.motor_lag`), so that ``kb`` stays positive for any motor.
+    """
+    gains = [abs(motor_lag(t["voltage_V"], t["theta_deg"], t.dt)["K"]) for t in traces]
+    damping = float(base.kT) / (max(float(np.median(gains)), 1e-6) * float(base.R))
+    return float(min(float(base.v), 0.2 * damping))
+
+
+MOTOR_NAMES = frozenset(("R", "L", "kb", "kT", "M", "v"))
+BELL_NAMES = ("F_rt", "a", "b", "c")
+
+
 def _start_values(
     traces: Sequence[Trace],
     stage: str,
     free: Sequence[str],
     per_trace: Sequence[str],
     base: EWBParams,
-    staged: bool = False,
 ) -> dict[str, float]:
-    """A sensible start without hand-tuning.
+    """A start in the optimum's valley, from the data (see :mod:`ewb_ident.initial`).
 
-    Closed forms where a stage is linear in its parameters (gap polynomial, mu); for the
-    bell, the best point of a small grid (teacher-forced on measured x and force). With
-    ``staged``, the whole chain starts from teacher-forced least-squares fits of the
-    motor and force stages (the fallback when a fit from the quick start fails).
-    Keys ``"name[k]"`` hold per-trace values.
+    Closed forms where a stage is linear in its parameters (gap polynomial, mu); a
+    lag-plus-integrator grid for the motor; a straight-line grid for the bell. For the
+    whole chain, the motor and the bell are then refined by teacher-forced least-squares
+    fits from their measured inputs, so the chain's solver starts with every link in its
+    own valley (away from the flat-bell basin). Keys ``"name[k]"`` hold per-trace values.
     """
     start: dict[str, float] = {}
     want = set(free)
@@ -393,29 +509,40 @@ def _start_values(
         F = np.concatenate([t["force_N"] * 2 * t.r_eff_m for t in traces])
         T = np.concatenate([t["torque_Nm"] for t in traces])
         start["mu"] = float(np.clip(F @ T / (F @ F), 0.01, 0.99))
-    bell = [n for n in ("F_rt", "a", "b", "c") if n in want]
-    if (
-        bell
-        and stage in ("force", "chain")
-        and all(t.has("x_m") and t.has("force_N") for t in traces)
-    ):
-        start |= _bell_grid_start(traces, bell, start, base)
-    if stage != "chain" or not staged:
+    motor = [n for n in free if n in MOTOR_NAMES or n == "theta0_deg"]
+    if stage in ("motor", "chain") and motor and all(t.has("theta_deg") for t in traces):
+        start |= _motor_start(traces, motor, per_trace, base)
+    bell = [n for n in BELL_NAMES if n in want]
+    pseudo = []
+    if bell and stage in ("force", "chain"):
+        pseudo = [_bell_trace(t, start, base) for t in traces]
+        if all(p is not None for p in pseudo):
+            x = np.concatenate([p["x_m"] for p in pseudo])
+            F = np.concatenate([p["force_N"] for p in pseudo])
+            try:
+                guess = bell_start(x, F)
+            except ValueError:
+                guess = {}
+            start |= {n: v for n, v in guess.items() if n in bell}
+    if stage != "chain":
         return start
-    for sub in ("motor", "force"):
-        names = [n for n in free if n in STAGE_PARAMS[sub]]
-        cols = stage_inputs(sub) + (STAGE_COLUMNS[sub][1],)
-        if not names or not all(t.has(c) for t in traces for c in cols):
+    fixed = base.as_dict() | {k: v for k, v in start.items() if "[" not in k}
+    subs = [("motor", traces, motor)]
+    if bell and all(p is not None for p in pseudo):
+        subs.append(("force", pseudo, bell))
+    for sub, trs, names in subs:
+        names = [n for n in names if n in free]
+        if not names or not all(t.has(c) for t in trs for c in stage_inputs(sub)):
             continue
         res = fit(
-            traces,
+            trs,
             stage=sub,
             free=names,
             per_trace=[n for n in per_trace if n in names],
-            fixed=base.as_dict() | {k: v for k, v in start.items() if "[" not in k},
-            start={k: v for k, v in start.items() if k in names},
+            fixed={k: v for k, v in fixed.items() if k not in names},
+            start={k: v for k, v in start.items() if k.split("[")[0] in names},
         )
-        if not res.converged:
+        if not np.isfinite(res.cost):
             continue
         for k, p in enumerate(res.params):
             vals = p.as_dict() | {"theta0_deg": res.theta0_deg[k]}
@@ -424,60 +551,55 @@ def _start_values(
     return start
 
 
-def _bell_grid_start(
-    traces: Sequence[Trace], names: Sequence[str], start: Mapping[str, float], base: EWBParams
+def _motor_start(
+    traces: Sequence[Trace], names: Sequence[str], per_trace: Sequence[str], base: EWBParams
 ) -> dict[str, float]:
-    """The best of a small grid of bell parameters, by the teacher-forced force cost.
+    """Motor start values from each trace's voltage, angle and current (median over
+    traces for shared parameters)."""
+    per = []
+    for t in traces:
+        guess = motor_start(
+            t["voltage_V"],
+            t["theta_deg"],
+            t.dt,
+            base.as_dict(),
+            t["current_A"] if "R" in names and t.has("current_A") else None,
+        )
+        per.append(guess)
+    out: dict[str, float] = {}
+    for n in names:
+        if n not in per[0]:
+            continue
+        if n in per_trace:
+            out |= {f"{n}[{k}]": g[n] for k, g in enumerate(per)}
+        else:
+            out[n] = float(np.median([g[n] for g in per]))
+    return out
 
-    The bell's shape parameters trade off and its cost has flat regions (a bell that
-    never rises), so a local solver needs a start in the right valley.
-    """
-    problem = _Problem(
-        stage="force",
-        shared=tuple(names),
-        per_trace=(),
-        channels=tuple(("force_N",) for _ in traces),
-        n_sub=tuple(1 for _ in traces),
-        method="exponential",
+
+def _bell_trace(trace: Trace, start: Mapping[str, float], base: EWBParams) -> Trace | None:
+    """The bell's input and output for a teacher-forced start: measured ``x_m`` (or the
+    gap polynomial of the measured angle) and measured force (or torque / (2 mu r_eff))."""
+    if trace.has("x_m"):
+        x = trace["x_m"]
+    elif trace.has("theta_deg"):
+        p = {n: start.get(n, float(getattr(base, n))) for n in ("p2", "p1", "p0")}
+        x = np.asarray(gap(trace["theta_deg"], p["p2"], p["p1"], p["p0"]))
+    else:
+        return None
+    if trace.has("force_N"):
+        F = trace["force_N"]
+    elif trace.has("torque_Nm"):
+        mu = start.get("mu", float(base.mu))
+        F = trace["torque_Nm"] / (2.0 * mu * trace.r_eff_m)
+    else:
+        return None
+    return Trace(
+        name=trace.name,
+        time_s=trace.time_s,
+        channels={"x_m": np.asarray(x, float), "force_N": np.asarray(F, float)},
+        sidecar=dict(trace.sidecar),
     )
-    tdata = [_trace_data(t, "force", ("force_N",)) for t in traces]
-    data = {
-        "traces": [
-            d
-            | {
-                "sigma": {
-                    "force_N": jnp.asarray(
-                        max(noise_sigma(t["force_N"]), noise_floor(t["force_N"]))
-                    )
-                }
-            }
-            for d, t in zip(tdata, traces, strict=True)
-        ],
-        "fixed": {n: jnp.asarray(v) for n, v in base.as_dict().items()},
-    }
-    grid = _force_grid([n for n in names if n != "F_rt"], start, base)
-    us = jnp.stack([_to_u(problem, g, base, tdata) for g in grid])
-    costs = np.asarray(_costs(problem, us, data))
-    best = grid[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))]
-    return {n: best.get(n, float(getattr(base, n))) for n in names}
-
-
-def _force_grid(
-    names: Sequence[str], start: Mapping[str, float], base: EWBParams
-) -> list[dict[str, float]]:
-    """Starting points for the bell. Its shape parameters trade off and its cost has flat
-    regions (a bell that never rises), so the solve starts from the best of a small grid
-    around the seed values."""
-    grid = {"a": (0.5, 1.0, 2.0), "b": (0.6, 1.0, 2.0), "c": (-3.0, 0.0, 3.0)}
-    axes = [[(n, f) for f in grid[n]] for n in names]
-    points = []
-    for combo in itertools.product(*axes):
-        pt = dict(start)
-        for n, f in combo:
-            info, ref = PARAMS[n], float(getattr(base, n))
-            pt[n] = ref + f * info.scale if info.transform == "affine" else ref * f
-        points.append(pt)
-    return points
 
 
 # ----------------------------------------------------------------------------- fit
@@ -516,15 +638,20 @@ class _Setup:
 
 def _setup(traces, stage, free, per_trace, fixed, integrator) -> _Setup:
     traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
-    free_t = tuple(default_free(stage, traces) if free is None else free)
-    if per_trace is None:
-        pt = tuple(n for n in free_t if n in DEFAULT_PER_TRACE)
+    fixed = dict(fixed or {})
+    _check_fixed(stage, fixed, free)
+    if free is None:
+        free_t = tuple(n for n in default_free(stage, traces) if n not in fixed)
     else:
-        pt = tuple(per_trace)
-    _check_request(traces, stage, free_t, pt)
+        free_t = tuple(free)
+    # The start angle is a property of each recording: always per trace when free.
+    pt = tuple(dict.fromkeys(DEFAULT_PER_TRACE + tuple(per_trace or ())))
+    _check_request(traces, stage, free_t, tuple(n for n in pt if n not in DEFAULT_PER_TRACE))
     pt = tuple(n for n in free_t if n in pt)  # in the order of free
-    base = EWBParams().replace(**{k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS})
-    notes = []
+    base = EWBParams().replace(**{k: v for k, v in fixed.items() if k in MODEL_PARAMS})
+    if stage in ("motor", "chain") and "kb" in free_t and "v" not in free_t and "v" not in fixed:
+        base = base.replace(v=held_viscous_friction(traces, base))
+    notes = structural_notes(stage, traces, free_t)
     if integrator.method == "heun":
         rho = heun_amplification(base, min(t.dt for t in traces))
         if rho > 1:
@@ -569,7 +696,6 @@ def fit(
     max_steps: int = 300,
     rtol: float = 1e-6,
     atol: float = 1e-8,
-    _staged: bool = False,
 ) -> FitResult:
     """Fit the EWB model to one or several traces by weighted least squares.
 
@@ -614,12 +740,11 @@ def fit(
     """
     setup = _setup(traces, stage, free, per_trace, fixed, integrator)
     problem = setup.problem
-    st = _start_values(
-        setup.traces, stage, setup.free, setup.per_trace, setup.base, staged=_staged
-    ) | dict(start or {})
-    u0 = _to_u(problem, st, setup.base, setup.tdata)
+    st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
+    u0 = _to_u(problem, st | dict(start or {}), setup.base, setup.tdata)
 
-    # Solve, re-estimate the noise levels from the residuals, solve again.
+    # Solve, re-estimate the noise levels from the residuals, solve again; a solve that
+    # ran out of steps while still descending gets one more allowance.
     sigma = setup.sensor_sigma()
     data = setup.data(sigma)
     sol = _solve(problem, u0, data, rtol, atol, max_steps)
@@ -631,23 +756,11 @@ def fit(
         sol = _solve(problem, sol.value, data, rtol, atol, max_steps)
         results.append(sol.result)
         steps += int(sol.stats["num_steps"])
-    result = _finish(setup, sol.value, data, sigma, results, steps, max_steps)
-    if not result.converged and stage == "chain" and not _staged:
-        # Retry from teacher-forced fits of each stage: slower, but starts in the valley.
-        return fit(
-            setup.traces,
-            stage=stage,
-            free=setup.free,
-            per_trace=setup.per_trace,
-            fixed=fixed,
-            start=start,
-            integrator=integrator,
-            max_steps=max_steps,
-            rtol=rtol,
-            atol=atol,
-            _staged=True,
-        )
-    return result
+        if _is(sol.result, optx.RESULTS.nonlinear_max_steps_reached):
+            sol = _solve(problem, sol.value, data, rtol, atol, max_steps)
+            results[-1] = sol.result
+            steps += int(sol.stats["num_steps"])
+    return _finish(setup, sol.value, data, sigma, results, steps, max_steps)
 
 
 def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResult:
@@ -691,6 +804,8 @@ def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResu
         sim = np.concatenate([p[ch] for p in preds if ch in p])
         meas = np.concatenate([t[ch] for t, chs in zip(traces, channels, strict=True) if ch in chs])
         pooled[ch] = channel_metrics(sim, meas)
+    acceptable, judged = _judge(setup, params, trace_metrics, pooled)
+    notes += judged
     return FitResult(
         stage=setup.stage,
         trace_names=tuple(t.name for t in traces),
@@ -707,6 +822,7 @@ def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResu
         noise=setup.noise,
         sigma=tuple(sigma),
         converged=ok,
+        acceptable=acceptable,
         message=message,
         n_steps=steps,
         cost=float(0.5 * np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),
@@ -811,6 +927,48 @@ def _is(result, item) -> bool:
     """Whether a solver result code is ``item`` (compared by meaning: the enumeration's
     items do not compare equal across optimistix's and lineax's result classes)."""
     return optx.RESULTS[result] == optx.RESULTS[item]
+
+
+#: The seed paper's acceptance: force and torque percent error below 10 %.
+SEED_ACCEPTANCE_PCT = 10.0
+#: A bell exponent below this is the degenerate flat bell (force stuck near F_rt/2).
+FLAT_BELL_B = 0.5
+#: A channel whose residual RMS exceeds this many times its sensor noise is a misfit.
+MISFIT_RATIO = 3.0
+
+
+def _judge(setup: _Setup, params, trace_metrics, pooled) -> tuple[bool, list[str]]:
+    """Judge the fit against what this tool states as acceptable (see ``FitResult``)."""
+    notes: list[str] = []
+    acceptable = True
+    if setup.stage in ("force", "chain") and "b" in setup.free:
+        b = float(params[0].b)
+        if b < FLAT_BELL_B:
+            acceptable = False
+            notes.append(
+                f"the fitted bell is flat (b = {b:.3g} < {FLAT_BELL_B}): the force is held "
+                "near F_rt/2 whatever the displacement, a degenerate fit, not the rig; "
+                "check that the force channel rises with x_m"
+            )
+    for ch in ("force_N", "torque_Nm"):
+        pe = (pooled.get(ch) or {}).get("percent_error")
+        if pe is not None and pe > SEED_ACCEPTANCE_PCT:
+            acceptable = False
+            notes.append(
+                f"{ch}: percent error {pe:.1f} % is outside the seed paper's acceptance "
+                f"({SEED_ACCEPTANCE_PCT:g} %): the fitted model does not reproduce this trace"
+            )
+    for t, nz, tm in zip(setup.traces, setup.noise, trace_metrics, strict=True):
+        for ch, m in tm.items():
+            floor = max(nz.get(ch, 0.0), noise_floor(t[ch]))
+            ratio = m["rmse"] / floor
+            if ratio > MISFIT_RATIO:
+                notes.append(
+                    f"{t.name}: {ch} misses its noise floor: residual RMS {m['rmse']:.3g} is "
+                    f"{ratio:.1f}x the sensor noise ({floor:.3g}); the model leaves "
+                    "something out here (ewb-ident diagnose locates it)"
+                )
+    return acceptable, notes
 
 
 def _message(results, r, max_steps) -> str:

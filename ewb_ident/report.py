@@ -15,7 +15,11 @@ def fit_summary(result: FitResult) -> str:
     """A short plain-text summary of a fit: parameters, metrics, warnings."""
     lines = [
         f"fit of {', '.join(result.trace_names)} (stage: {result.stage}) - "
-        + ("converged" if result.converged else f"NOT CONVERGED: {result.message}"),
+        + {
+            "ok": "converged",
+            "poor_fit": "converged, but POOR FIT (see the warnings)",
+            "not_converged": f"NOT CONVERGED: {result.message}",
+        }[result.status],
         "",
         f"  {'param':<11}{'estimate':>13}{'std. error':>13}{'seed':>12}  unit",
     ]
