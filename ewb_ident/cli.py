@@ -329,6 +329,8 @@ def sample(
         f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {out / 'pairs.png'} "
         f"({time.perf_counter() - t0:.1f} s)"
     )
+    if not result.converged:
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
 @app.command()

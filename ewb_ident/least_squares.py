@@ -21,6 +21,7 @@ The solver is optimistix's Levenberg-Marquardt; its result code is always checke
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -739,14 +740,41 @@ def fit(
         A trace lacks a column the stage needs.
     """
     setup = _setup(traces, stage, free, per_trace, fixed, integrator)
-    problem = setup.problem
     st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
-    u0 = _to_u(problem, st | dict(start or {}), setup.base, setup.tdata)
+    st |= dict(start or {})
+    # No null direction reaches the solver: at the start, a combination of free
+    # parameters the data cannot see (scaled Jacobian numerically singular) has its
+    # dominant parameter held at its start value, and the fit says so.
+    held_notes = []
+    for _ in range(len(setup.free)):
+        problem = setup.problem
+        u0 = _to_u(problem, st, setup.base, setup.tdata)
+        sigma = setup.sensor_sigma()
+        data = setup.data(sigma)
+        J0 = np.asarray(_evaluate(problem, u0, data)[2])
+        found = _null_direction(J0, problem.shared)
+        if found is None:
+            break
+        name, partners, cond = found
+        value = float(st.get(name, getattr(setup.base, name)))
+        held_notes.append(
+            f"the data cannot tell {', '.join(partners)} apart (condition number {cond:.2g} "
+            f"at the start): {name} is held at {value:.4g} {PARAMS[name].unit}"
+        )
+        setup = _setup(
+            setup.traces,
+            stage,
+            [n for n in setup.free if n != name],
+            per_trace,
+            dict(fixed or {}) | {name: value},
+            integrator,
+        )
+    if held_notes:
+        setup = dataclasses.replace(setup, notes=setup.notes + tuple(held_notes))
+    problem = setup.problem
 
     # Solve, re-estimate the noise levels from the residuals, solve again; a solve that
     # ran out of steps while still descending gets one more allowance.
-    sigma = setup.sensor_sigma()
-    data = setup.data(sigma)
     sol = _solve(problem, u0, data, rtol, atol, max_steps)
     results, steps = [sol.result], int(sol.stats["num_steps"])
     r = np.asarray(_evaluate(problem, sol.value, data)[0])
@@ -908,6 +936,32 @@ def _to_u(problem: _Problem, values: Mapping[str, float], base: EWBParams, tdata
             v = float(d["theta0_deg"]) if n == "theta0_deg" else defaults[n]
             u.append(PARAMS[n].to_unconstrained(values.get(f"{n}[{k}]", values.get(n, v))))
     return jnp.asarray(np.array(u, dtype=float))
+
+
+#: Above this condition number of the column-scaled Jacobian at the start, a direction
+#: is taken as null (structurally unidentified), not merely poorly determined.
+NULL_CONDITION = 1.0e10
+
+
+def _null_direction(J: np.ndarray, shared: Sequence[str]) -> tuple[str, list[str], float] | None:
+    """The shared parameter to hold when ``J`` (weighted residuals by ``u``) has a null
+    direction: the one with the largest weight in the smallest singular vector, with the
+    parameters that make up the direction and the condition number."""
+    if J.shape[1] < 2 or not np.all(np.isfinite(J)):
+        return None
+    scale = np.linalg.norm(J, axis=0)
+    if np.any(scale == 0):  # a parameter the residuals do not depend on at all
+        j = int(np.argmin(scale))
+        return (shared[j], [shared[j]], float("inf")) if j < len(shared) else None
+    _, sv, Vt = np.linalg.svd(np.linalg.qr(J / scale, mode="r"))
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    if cond < NULL_CONDITION:
+        return None
+    w = np.abs(Vt[-1][: len(shared)])
+    if w.size == 0 or w.max() == 0:
+        return None
+    partners = [shared[j] for j in np.argsort(-w) if w[j] > 0.1 * w.max()]
+    return shared[int(np.argmax(w))], partners, cond
 
 
 def _residual_sigma(r, channels, traces, old):
