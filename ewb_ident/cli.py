@@ -47,6 +47,23 @@ def _fail(message: str) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+def _check_out(out: Path, *, folder: bool = True) -> None:
+    """Refuse an output location that cannot be written, before any work starts."""
+    import os
+
+    if folder and out.exists() and not out.is_dir():
+        _fail(f"--out {out}: exists and is not a folder; name a folder (it is created)")
+    if not folder and out.is_dir():
+        _fail(f"{out}: is a folder; name a file to write")
+    probe = out if folder and out.exists() else out.parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        _fail(f"{out}: cannot write there ({probe} is not a writable folder); choose another")
+    if folder and out.exists() and not os.access(out, os.W_OK | os.X_OK):
+        _fail(f"--out {out}: the folder is not writable; choose another")
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -113,6 +130,7 @@ def fit(
     no_unit_check: NoUnitCheck = False,
 ) -> None:
     """Least-squares fit; writes OUT/fit.json and prints a summary."""
+    _check_out(out)
     from .least_squares import fit as run_fit
     from .outputs import write_json
     from .report import fit_summary
@@ -160,6 +178,10 @@ def simulate(
         list[str] | None,
         typer.Option(help="Catalog effect to switch on (repeat for several), e.g. backlash."),
     ] = None,
+    params: Annotated[
+        Path | None,
+        typer.Option("--params", help="fit.json whose fitted parameters the rig takes."),
+    ] = None,
 ) -> None:
     """Synthetic rig trace with documented truth: writes OUT, its sidecar and OUT.truth.json."""
     import dataclasses
@@ -172,19 +194,36 @@ def simulate(
 
     if out.suffix.lower() not in (".csv", ".parquet"):
         _fail(f"{out}: write a .csv or .parquet trace")
+    _check_out(out, folder=False)
+    import math
+
+    if not (math.isfinite(duration) and 0 < duration <= 600):
+        _fail(f"--duration must be within (0, 600] s, got {duration!r}")
+    if not (math.isfinite(vary) and 0 <= vary <= 0.5):
+        _fail(f"--vary is a relative spread within [0, 0.5] (0.05: another unit), got {vary!r}")
+    if not (math.isfinite(noise_scale) and 0 <= noise_scale <= 100):
+        _fail(f"--noise-scale must be within [0, 100], got {noise_scale!r}")
     unknown = [e for e in effect or [] if e not in rig.EFFECTS]
     if unknown:
         _fail(f"unknown effect {unknown[0]!r}; the catalog is {', '.join(rig.EFFECTS)}")
+    fitted = {}
+    if params is not None:
+        from .validate import ValidateError, load_params
+
+        try:
+            fitted = load_params(params).as_dict()
+        except ValidateError as err:
+            _fail(str(err))
     try:
-        params = rig.RigParams()
+        rig_params = rig.RigParams(**fitted)
         if vary > 0:
-            params = rig.vary(params, np.random.default_rng([seed, 1]), rel=vary)
+            rig_params = rig.vary(rig_params, np.random.default_rng([seed, 1]), rel=vary)
         base = rig.SensorNoise()
         noise = rig.SensorNoise(
             **{f.name: getattr(base, f.name) * noise_scale for f in dataclasses.fields(base)}
         )
         trace, truth = rig.simulate_rig(
-            params,
+            rig_params,
             profile=profile,
             sample_rate_hz=rate,
             duration_s=duration,
@@ -254,6 +293,7 @@ def sample(
 ) -> None:
     """Posterior by MCMC (emcee) from the least-squares fit; writes OUT/summary.json,
     OUT/posterior.nc (ArviZ) and OUT/pairs.png, and prints a summary."""
+    _check_out(out)
     import sys
     import time
 
@@ -344,6 +384,7 @@ def study(
 ) -> None:
     """Run a batch study: writes OUT/results.csv (one row per case and parameter) and
     OUT/report.md."""
+    _check_out(out)
     from rich.progress import Progress
 
     from .outputs import atomic_write
@@ -395,6 +436,7 @@ def report(
     """Validation report: OUT/index.html (self-contained) and PNG figures: data, fit,
     bell curve, parameters with 90 % intervals, errors beside the seed's, MCMC
     diagnostics, and the diagnosis of missing physics."""
+    _check_out(out)
     from .least_squares import fit as run_fit
     from .validation_report import build_report, write_report
 
@@ -425,6 +467,11 @@ def report(
     if diag is not None:
         typer.echo(diag.summary())
     typer.echo(f"wrote {path} ({len(figures)} figures)")
+    if result.status != "ok" or (post is not None and not post.converged):
+        typer.echo(
+            "the fit or the posterior is not trustworthy (see the report's warnings)", err=True
+        )
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
 @app.command()
@@ -447,6 +494,7 @@ def diagnose(
 ) -> None:
     """Locate where the model misses the recording, name the missing physics, add it and
     refit; writes OUT/diagnosis.json and figures, and prints a summary."""
+    _check_out(out)
     from .diagnose import DiagnoseError
     from .diagnose import diagnose as run_diagnose
     from .figures import write_diagnosis
@@ -461,6 +509,82 @@ def diagnose(
     paths = write_diagnosis(result, out, extra={"traces": [str(trace)]}, figures=figures)
     typer.echo(result.summary())
     typer.echo(f"wrote {out / 'diagnosis.json'} and {len(paths) - 1} figure(s)")
+
+
+@app.command()
+def compare(
+    old: Annotated[list[Path], typer.Option("--old", help="Trace(s) before the change.")],
+    new: Annotated[list[Path], typer.Option("--new", help="Trace(s) after the change.")],
+    out: OutDir,
+    stage: Annotated[str, typer.Option(help="Stage of the fits (default: chain).")] = "chain",
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Hardware-change refit: which parameters changed between OLD and NEW traces, with
+    90 % intervals and P(changed), and the brake torque at the seed's operating point;
+    writes OUT/compare.json. Exits 3 when a fit did not converge."""
+    _check_out(out)
+    from .compare import compare as run_compare
+    from .outputs import write_json
+
+    try:
+        trs_old = _read(old, (stage,), mapping, fill_gaps, no_unit_check)
+        trs_new = _read(new, (stage,), mapping, fill_gaps, no_unit_check)
+        result = run_compare(trs_old, trs_new, stage=stage)
+    except _bad_input_errors() as err:
+        _fail(str(err))
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "compare.json", result.to_json())
+    typer.echo(result.summary())
+    typer.echo(f"wrote {out / 'compare.json'}")
+    if not (result.old.converged and result.new.converged):
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+@app.command()
+def validate(
+    trace: Annotated[Path, typer.Argument(help="A trace the parameters were not fitted to.")],
+    params: Annotated[Path, typer.Option("--params", help="fit.json of an earlier fit.")],
+    out: OutDir,
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+) -> None:
+    """Simulate fitted parameters on another trace: per-channel RMSE, NRMSE and percent
+    error against the seed's 10 % acceptance and the trace's noise floor; writes
+    OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
+    _check_out(out)
+    from .outputs import atomic_write, json_text
+    from .validate import ValidateError, load_params, validation_figure
+    from .validate import validate as run_validate
+
+    try:
+        p = load_params(params)
+        (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check)
+        result = run_validate(tr, p)
+    except (*_bad_input_errors(), ValidateError) as err:
+        _fail(str(err))
+    text = json_text(result.to_json() | {"trace_file": str(trace), "params_file": str(params)})
+    fig = validation_figure(tr, result)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(
+        [
+            (out / "validate.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+            (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+        ]
+    )
+    typer.echo(f"validation of {params} on {tr.name}: {result.verdict}")
+    typer.echo(f"  {result.words}")
+    for ch, m in result.metrics.items():
+        pe = m["percent_error"]
+        typer.echo(
+            f"  {ch:<11} RMSE {m['rmse']:.4g}  NRMSE {m['nrmse_pct']:.3g} %  "
+            f"% error {'-' if pe is None else f'{pe:.3g}'}  {m['noise_ratio']:.2f}x noise"
+        )
+    typer.echo(f"wrote {out / 'validate.json'} and {out / 'validate.png'}")
+    if not result.passes_seed:
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
 @app.callback(invoke_without_command=True)

@@ -81,13 +81,19 @@ class Comparison:
         moved = [c for c in self.changes if c.changed]
         if not moved:
             lines.append("No parameter changed beyond its tolerance with probability > 0.95.")
-        for c in moved:
+        for c in self.changes:
             rel = f" ({100 * c.delta / c.old:+.1f} %)" if c.old else ""
             unit = PARAMS[c.name].unit
+            word = "changed" if c.changed else "no clear change"
+            interval = (
+                f"90 % interval [{c.low90:+.4g}, {c.high90:+.4g}]"
+                if c.low90 is not None
+                else "no interval (no standard error)"
+            )
+            p = "-" if c.p_changed is None else f"{c.p_changed:.3f}"
             lines.append(
-                f"{c.name} changed by {c.delta:+.4g} {unit}{rel}, 90 % interval "
-                f"[{c.low90:+.4g}, {c.high90:+.4g}]; P(|change| > {c.tolerance:.3g}) = "
-                f"{c.p_changed:.3f}"
+                f"{c.name}: {word}, {c.delta:+.4g} {unit}{rel}, {interval}; "
+                f"P(|change| > {c.tolerance:.3g}) = {p}"
             )
         dT = self.torque_new - self.torque_old
         se = f" +- {self.torque_delta_stderr:.3g}" if self.torque_delta_stderr else ""

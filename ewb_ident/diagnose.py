@@ -268,6 +268,10 @@ class DiagnosisResult:
     trace: Trace = field(repr=False)
     timings: dict[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    baseline_params: dict[str, float] = field(default_factory=dict)
+    baseline_stderr: dict[str, float | None] = field(default_factory=dict)
+    augmented_params: dict[str, float] = field(default_factory=dict)
+    augmented_stderr: dict[str, float | None] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The contract ``diagnosis.json`` document (plain JSON, no NaN)."""
@@ -277,6 +281,8 @@ class DiagnosisResult:
             "findings": [f.to_json() for f in self.findings],
             "baseline": {
                 "metrics": _metrics_json(self.baseline_metrics),
+                "params": self.baseline_params,
+                "stderr": self.baseline_stderr,
                 "stage_metrics": {
                     s: _metrics_json(m) for s, m in self.stage_metrics_before.items()
                 },
@@ -285,6 +291,13 @@ class DiagnosisResult:
                 "metrics": _metrics_json(self.augmented_metrics),
                 "stage_metrics": {s: _metrics_json(m) for s, m in self.stage_metrics_after.items()},
                 "mechanisms": [f.effect for f in self.findings],
+                "params": self.augmented_params,
+                "stderr": self.augmented_stderr,
+                "params_note": (
+                    "the whole chain refitted from the voltage with the findings on: the "
+                    "corrected a, b, c, mu; mechanism parameters as 'variant.param'. Empty "
+                    "when the whole-chain fit failed."
+                ),
             },
             "trace": self.trace_name,
             "noise_sigma": self.noise,
@@ -1004,7 +1017,30 @@ def diagnose(
         trace=trace,
         timings=timings,
         notes=tuple(notes),
+        **_model_tables(chain_fits, chain_ok),
     )
+
+
+def _model_tables(chain_fits: Sequence[AugFit], ok: bool) -> dict[str, dict]:
+    """Parameter values and standard errors of the baseline and the corrected chain."""
+    if not ok or not chain_fits:
+        return {}
+
+    def table(f: AugFit) -> tuple[dict[str, float], dict[str, float | None]]:
+        values = {k: float(v) for k, v in f.values.items()}
+        for m in f.mechanisms:
+            values |= {f"{m.variant}.{k}": float(v) for k, v in m.values().items()}
+        stderr = {k: f.stderr.get(k) for k in values}
+        return values, stderr
+
+    bp, bs = table(chain_fits[0])
+    ap, as_ = table(chain_fits[-1])
+    return {
+        "baseline_params": bp,
+        "baseline_stderr": bs,
+        "augmented_params": ap,
+        "augmented_stderr": as_,
+    }
 
 
 # ----------------------------------------------------------------------------- helpers

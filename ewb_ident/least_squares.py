@@ -71,9 +71,9 @@ def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
     channels can determine (see :func:`structural_notes` for the words).
 
     Motor: with current, ``R``, ``L``, ``kb``, ``M``, ``v`` and the start angle. From
-    voltage and angle alone only two combinations are identified (gain
-    ``kT/(R v + kT kb)`` and time constant ``M R/(R v + kT kb)``), so only ``kb`` and
-    ``M`` are fitted: ``R`` and ``L`` stay nominal and ``v`` is held at a small value
+    voltage and angle alone only the gain and the two lags of the transfer function are
+    identified (:func:`motor_combinations`), so ``L``, ``kb`` and ``M`` are fitted:
+    ``R`` stays nominal and ``v`` is held at a small value
     (:func:`held_viscous_friction`), so ``kb`` carries the damping. ``kT`` always stays
     fixed: with no load-torque measurement only ratios to it are identified.
     Gap: ``p2, p1, p0``. Force: ``F_rt, a, b, c`` (a rig's rated force differs from the
@@ -85,7 +85,7 @@ def default_free(stage: str, traces: Sequence[Trace]) -> tuple[str, ...]:
     if stage == "motor":
         if all(t.has("current_A") for t in traces):
             return ("R", "L", "kb", "M", "v", "theta0_deg")
-        return ("kb", "M", "theta0_deg")
+        return ("L", "kb", "M", "theta0_deg")
     if stage == "gap":
         return ("p2", "p1", "p0")
     if stage == "force":
@@ -108,12 +108,11 @@ def structural_notes(stage: str, traces: Sequence[Trace], free: Sequence[str]) -
     notes = []
     fixed = set(MODEL_PARAMS) - set(free)
     if stage in ("motor", "chain"):
-        if not all(t.has("current_A") for t in traces) and {"R", "L", "v"} & fixed:
+        if not all(t.has("current_A") for t in traces) and {"R", "v"} & fixed:
             notes.append(
                 "no current_A: from voltage and angle the motor identifies only its gain "
-                "kT/(R v + kT kb) and mechanical time constant M R/(R v + kT kb) (both "
-                "reported under 'derived'); R, L and v are held fixed, so kb and M are "
-                "effective values"
+                "kT/(R v + kT kb) and its lags (reported under 'derived'); R and v are held "
+                "fixed, so kb, M and L are effective values"
             )
     if stage == "chain":
         names = [t.name for t in traces]
@@ -383,14 +382,20 @@ class FitResult:
 def motor_combinations(p: EWBParams) -> dict[str, float]:
     """The motor's combinations that voltage and angle alone identify (SI).
 
-    ``motor_gain_rad_per_V_s``: no-load speed per volt, ``kT / (R v + kT kb)``;
-    ``motor_time_constant_s``: mechanical time constant, ``M R / (R v + kT kb)``;
-    ``electrical_time_constant_s``: ``L / R``.
+    Voltage to speed is ``K / (c2 s^2 + c1 s + 1)`` with ``D = R v + kT kb``:
+
+    ``motor_gain_rad_per_V_s``: ``K = kT / D``, the no-load speed per volt;
+    ``motor_lag_s``: ``c1 = (L v + R M) / D``, the total lag (mechanical time constant
+    ``M R / D`` plus a small electrical share);
+    ``motor_lag2_s2``: ``c2 = L M / D``, weakly determined by the angle alone;
+    ``motor_time_constant_s``: ``M R / D``; ``electrical_time_constant_s``: ``L / R``.
     """
     R, L, kb, kT, M, v = (float(getattr(p, n)) for n in ("R", "L", "kb", "kT", "M", "v"))
     damping = R * v + kT * kb
     return {
         "motor_gain_rad_per_V_s": kT / damping,
+        "motor_lag_s": (L * v + R * M) / damping,
+        "motor_lag2_s2": L * M / damping,
         "motor_time_constant_s": M * R / damping,
         "electrical_time_constant_s": L / R,
     }
@@ -940,7 +945,7 @@ def _to_u(problem: _Problem, values: Mapping[str, float], base: EWBParams, tdata
 
 #: Above this condition number of the column-scaled Jacobian at the start, a direction
 #: is taken as null (structurally unidentified), not merely poorly determined.
-NULL_CONDITION = 1.0e10
+NULL_CONDITION = 1.0e4
 
 
 def _null_direction(J: np.ndarray, shared: Sequence[str]) -> tuple[str, list[str], float] | None:

@@ -1,0 +1,216 @@
+"""Validation on another trace: simulate fitted parameters where they were not fitted.
+
+The first thing a system-identification user does with a model is run it on a recording
+it has not seen (MATLAB's ``compare``). :func:`validate` simulates the whole chain from
+the new trace's voltage with the parameters of an earlier fit (``fit.json``), and scores
+every recorded channel:
+
+* against the seed paper's acceptance: force and torque percent error within 10 %;
+* against the trace's own noise floor: the residual RMS of each channel over its sensor
+  noise (estimated from the data, :func:`ewb_ident.metrics.noise_sigma`). Within
+  :data:`NOISE_RATIO` the model explains the recording down to its noise.
+
+Only the start angle is taken from the new trace (the pinion rests where the recording
+starts); every other parameter comes from the fit, and the pad radius from the new
+trace (its sidecar, or the stated default).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .metrics import channel_metrics, noise_floor, noise_sigma
+from .params import MODEL_PARAMS, EWBParams
+from .simulate import simulate_chain
+from .traces import CHANNELS, Trace, TraceError
+
+#: Residual RMS up to this many times the sensor noise counts as "at the noise floor".
+NOISE_RATIO = 1.5
+#: The seed paper's acceptance on force and torque percent error, %.
+SEED_ACCEPTANCE_PCT = 10.0
+
+
+class ValidateError(ValueError):
+    """Parameters that cannot be validated (unreadable or incomplete ``fit.json``)."""
+
+
+def load_params(path: str | Path) -> EWBParams:
+    """The model parameters of a ``fit.json`` (``params``; per-trace values averaged).
+
+    Raises
+    ------
+    ValidateError
+        Unreadable file, or a parameter missing or not a finite number.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValidateError(f"{path}: cannot read it as fit.json ({err}); give a fit.json") from err
+    params = doc.get("params") if isinstance(doc, dict) else None
+    if not isinstance(params, dict):
+        raise ValidateError(f"{path}: no 'params' object; give the fit.json that `fit` wrote")
+    values = {}
+    for name in MODEL_PARAMS:
+        v = params.get(name)
+        if not isinstance(v, int | float) or isinstance(v, bool) or not np.isfinite(v):
+            raise ValidateError(
+                f"{path}: params.{name} is {v!r}, not a finite number; give a complete fit.json"
+            )
+        values[name] = float(v)
+    return EWBParams(**values)
+
+
+@dataclass(frozen=True)
+class ValidationResult:
+    """Scores of fitted parameters on a trace they were not fitted to.
+
+    Attributes
+    ----------
+    trace_name
+        The validation trace.
+    metrics
+        Per recorded channel: ``rmse`` (channel unit), ``nrmse_pct``, ``percent_error``,
+        ``noise_sigma`` (sensor noise, channel unit) and ``noise_ratio`` (RMSE over it).
+    passes_seed
+        Force and torque percent errors within the seed's 10 % (where recorded).
+    at_noise_floor
+        Every channel's ``noise_ratio`` within :data:`NOISE_RATIO`.
+    verdict
+        ``"at_noise_floor"``, ``"passes_seed_acceptance"`` or ``"mismatch"``.
+    words
+        The verdict in a sentence, naming the worst channel.
+    """
+
+    trace_name: str
+    params: EWBParams
+    theta0_deg: float
+    r_eff_m: float
+    metrics: dict[str, dict[str, float | None]]
+    passes_seed: bool
+    at_noise_floor: bool
+    verdict: str
+    words: str
+    simulated: dict[str, np.ndarray] = field(repr=False)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``validate.json`` document."""
+        return {
+            "trace": self.trace_name,
+            "verdict": self.verdict,
+            "summary": self.words,
+            "passes_seed_acceptance": self.passes_seed,
+            "at_noise_floor": self.at_noise_floor,
+            "metrics": self.metrics,
+            "params": self.params.as_dict(),
+            "theta0_deg": self.theta0_deg,
+            "r_eff_m": self.r_eff_m,
+            "thresholds": {
+                "seed_percent_error": SEED_ACCEPTANCE_PCT,
+                "noise_ratio": NOISE_RATIO,
+            },
+        }
+
+
+def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> ValidationResult:
+    """Simulate ``params`` on ``trace`` from its voltage and score every recorded channel.
+
+    Parameters
+    ----------
+    trace
+        A trace with ``voltage_V`` and ``theta_deg`` (the start angle) and any outputs.
+    params
+        Model parameters (SI), e.g. from :func:`load_params`.
+    """
+    if isinstance(params, Mapping):
+        params = EWBParams(**{n: float(params[n]) for n in MODEL_PARAMS})
+    for col in ("voltage_V", "theta_deg"):
+        if not trace.has(col):
+            raise TraceError(
+                f"{trace.label}: column '{col}', row -: validation simulates from the voltage "
+                "and starts at the recorded angle; record this channel"
+            )
+    theta0 = float(np.median(trace["theta_deg"][:5]))
+    sim = simulate_chain(params, trace["voltage_V"], trace.dt, theta0, trace.r_eff_m)
+    sim = {k: np.asarray(v) for k, v in sim.items()}
+    metrics: dict[str, dict[str, float | None]] = {}
+    for ch in CHANNELS:
+        if not trace.has(ch):
+            continue
+        m = channel_metrics(sim[ch], trace[ch])
+        sd = max(noise_sigma(trace[ch]), noise_floor(trace[ch]))
+        metrics[ch] = m | {"noise_sigma": sd, "noise_ratio": m["rmse"] / sd}
+    finite = all(np.all(np.isfinite(sim[ch])) for ch in metrics)
+    pes = [
+        metrics[ch]["percent_error"]
+        for ch in ("force_N", "torque_Nm")
+        if ch in metrics and metrics[ch]["percent_error"] is not None
+    ]
+    passes = finite and all(pe <= SEED_ACCEPTANCE_PCT for pe in pes)
+    at_floor = finite and all(m["noise_ratio"] <= NOISE_RATIO for m in metrics.values())
+    worst = max(metrics, key=lambda ch: metrics[ch]["noise_ratio"]) if metrics else None
+    if not finite:
+        verdict, words = "mismatch", "the simulation diverged on this trace"
+    elif at_floor:
+        verdict = "at_noise_floor"
+        words = (
+            f"the fitted model reproduces {trace.name} to its sensor noise (every channel "
+            f"within {NOISE_RATIO:g}x)"
+        )
+    else:
+        m = metrics[worst]
+        verdict = "passes_seed_acceptance" if passes else "mismatch"
+        words = (
+            f"{worst} misses by {m['noise_ratio']:.1f}x its sensor noise (RMSE {m['rmse']:.3g}, "
+            f"NRMSE {m['nrmse_pct']:.2f} %)"
+            + (
+                "; force and torque still within the seed's 10 % acceptance"
+                if passes
+                else "; outside the seed's 10 % acceptance"
+            )
+            + ": this trace differs from the one the model was fitted to (another unit, "
+            "a hardware change, or physics the model leaves out)"
+        )
+    return ValidationResult(
+        trace_name=trace.name,
+        params=params,
+        theta0_deg=theta0,
+        r_eff_m=float(trace.r_eff_m),
+        metrics=metrics,
+        passes_seed=passes,
+        at_noise_floor=at_floor,
+        verdict=verdict,
+        words=words,
+        simulated=sim,
+    )
+
+
+def validation_figure(trace: Trace, result: ValidationResult):
+    """Measured against simulated, one panel per recorded channel, with residuals."""
+    from matplotlib.figure import Figure
+
+    chans = list(result.metrics)
+    fig = Figure(figsize=(10, 1.9 * len(chans) + 0.8), layout="constrained")
+    axes = fig.subplots(len(chans), 1, sharex=True, squeeze=False)[:, 0]
+    scale = {"x_m": (1e3, "x, mm")}
+    for ax, ch in zip(axes, chans, strict=True):
+        k, label = scale.get(ch, (1.0, ch))
+        ax.plot(trace.time_s, trace[ch] * k, ".", ms=1.5, color="k", label="measured")
+        ax.plot(trace.time_s, result.simulated[ch] * k, color="C1", lw=1, label="simulated")
+        m = result.metrics[ch]
+        ax.set_title(
+            f"{ch}: NRMSE {m['nrmse_pct']:.2f} %, RMSE {m['noise_ratio']:.1f}x noise",
+            fontsize=9,
+            loc="left",
+        )
+        ax.set_ylabel(label, fontsize=8)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time, s")
+    fig.suptitle(f"validation on {trace.name}: {result.verdict}", fontsize=10)
+    return fig

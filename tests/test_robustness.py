@@ -1,0 +1,210 @@
+"""Regression tests for issue 9 (every rig's recordings) and the misuse bugs of issue 11
+that this work touched: each bug named in the issue, once, by what it does."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from ewb_ident.cli import app
+from ewb_ident.least_squares import FitError, fit
+from ewb_ident.traces import Trace, read_trace
+
+DATA = Path(__file__).parents[1] / "datasets"
+runner = CliRunner()
+
+
+def _without(tmp_path: Path, name: str, columns: list[str]) -> Path:
+    """A copy of a shipped trace (and its sidecar) with some columns removed."""
+    src = DATA / f"{name}.csv"
+    if not src.exists():
+        src = DATA / "concealed" / f"{name}.csv"
+    df = pd.read_csv(src).drop(columns=columns)
+    out = tmp_path / f"{name}_no_{'_'.join(c.split('_')[0] for c in columns)}.csv"
+    df.to_csv(out, index=False)
+    out.with_suffix(".json").write_text(src.with_suffix(".json").read_text())
+    return out
+
+
+def test_fit_without_force_fits_what_is_recorded(tmp_path):
+    """Was: LinAlgError traceback. Now the bell is fitted through the torque, mu held."""
+    path = _without(tmp_path, "steps_200hz", ["force_N"])
+    out = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "o" / "fit.json").read_text())
+    assert "mu" not in doc["free"] and {"a", "b", "c", "F_rt"} <= set(doc["free"])
+    assert any("no force_N" in w for w in doc["warnings"])
+    truth = json.loads((DATA / "steps_200hz.truth.json").read_text())["params"]
+    # mu F_rt is what the torque determines.
+    product = doc["params"]["mu"] * doc["params"]["F_rt"]
+    assert abs(product / (truth["mu"] * truth["F_rt"]) - 1) < 0.02
+
+
+def test_multi_trace_per_trace_from_the_cli(tmp_path):
+    """Was: LinAlgError unless theta0_deg was listed by hand. The start angle is always
+    per trace; --per-trace adds to it."""
+    out = runner.invoke(
+        app,
+        [
+            "fit",
+            str(DATA / "steps_200hz.csv"),
+            str(DATA / "staircase_200hz.csv"),
+            "--per-trace",
+            "c,p0",
+            "--out",
+            str(tmp_path),
+        ],
+    )
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["per_trace_params"] == ["theta0_deg", "p0", "c"]
+    assert doc["converged"] is True
+    assert [set(p["params"]) for p in doc["per_trace"]] == [{"theta0_deg", "p0", "c"}] * 2
+
+
+def test_fix_is_honoured_for_default_free_parameters(tmp_path):
+    """Was: --fix silently ignored for parameters that are free by default."""
+    out = runner.invoke(
+        app,
+        [
+            "fit",
+            str(DATA / "steps_200hz.csv"),
+            "--stage",
+            "motor",
+            "--fix",
+            "R=1.1,L=0.002",
+            "--out",
+            str(tmp_path),
+        ],
+    )
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["params"]["R"] == 1.1 and doc["params"]["L"] == 0.002
+    assert "R" not in doc["free"] and "L" not in doc["free"]
+
+
+@pytest.mark.parametrize(
+    ("fix", "message"),
+    [
+        ("Z=1", "unknown parameter 'Z'"),
+        ("r=1.1", "did you mean 'R'"),
+        ("F_rt=nan", "outside its bounds"),
+        ("F_rt=-3500", "outside its bounds"),
+        ("F_rt=inf", "outside its bounds"),
+    ],
+)
+def test_bad_fix_is_refused_before_work(tmp_path, fix, message):
+    out = runner.invoke(
+        app, ["fit", str(DATA / "steps_200hz.csv"), "--fix", fix, "--out", str(tmp_path / "o")]
+    )
+    assert out.exit_code == 2 and message in out.output, out.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_fixed_and_free_at_once_is_refused():
+    trace = read_trace(DATA / "steps_200hz.csv")
+    with pytest.raises(FitError, match="both fixed"):
+        fit(trace, stage="force", free=["a", "b"], fixed={"a": 1e-3})
+
+
+def test_a_null_direction_never_reaches_the_solver():
+    """Without current, kb and v trade off exactly: asked to fit both, one is held."""
+    trace = read_trace(DATA / "steps_200hz.csv")
+    trace = Trace(
+        name=trace.name,
+        time_s=trace.time_s,
+        channels={k: v for k, v in trace.channels.items() if k != "current_A"},
+        sidecar=trace.sidecar,
+    )
+    result = fit(trace, stage="motor", free=["kb", "M", "v", "theta0_deg"])
+    assert len(set(result.free) & {"kb", "v"}) == 1
+    assert any("cannot tell" in w for w in result.warnings)
+    assert result.converged
+
+
+def test_a_poor_fit_says_so_and_exits_3(tmp_path):
+    """Was: torque doubled after the fit's own model -> converged: true, exit 0."""
+    df = pd.read_csv(DATA / "steps_200hz.csv")
+    half = len(df) // 2
+    df.loc[half:, "force_N"] *= 0.5  # force halved after mid-trace: no model fits this
+    path = tmp_path / "halved.csv"
+    df.to_csv(path, index=False)
+    path.with_suffix(".json").write_text((DATA / "steps_200hz.json").read_text())
+    out = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 3, out.output
+    doc = json.loads((tmp_path / "o" / "fit.json").read_text())
+    assert doc["status"] == "poor_fit" and doc["acceptable"] is False
+    assert any("outside the seed paper's acceptance" in w for w in doc["warnings"])
+    assert "POOR FIT" in out.output
+
+
+def test_a_fit_that_does_not_converge_exits_3(tmp_path):
+    """One solver step cannot converge: converged false in fit.json, exit code 3."""
+    trace = read_trace(DATA / "steps_200hz.csv")
+    result = fit(trace, stage="force", max_steps=1)
+    assert not result.converged and result.status == "not_converged"
+    assert any("did not converge" in w for w in result.warnings)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["simulate", "{tmp}/t.csv", "--vary", "5"], "--vary is a relative spread"),
+        (["simulate", "{tmp}/t.csv", "--duration", "1e6"], "--duration must be within"),
+        (["fit", "{data}/steps_200hz.csv", "--out", "{tmp}/file.txt"], "is not a folder"),
+        (["validate", "{data}/steps_200hz.csv", "--params", "{tmp}/none.json", "--out", "{tmp}/v"],
+         "cannot read it as fit.json"),
+    ],
+)  # fmt: skip
+def test_bad_options_are_refused_before_work(tmp_path, args, message):
+    (tmp_path / "file.txt").write_text("x")
+    argv = [a.format(tmp=tmp_path, data=DATA) for a in args]
+    out = runner.invoke(app, argv)
+    assert out.exit_code == 2 and message in out.output, out.output
+    assert not (tmp_path / "t.csv").exists() and not (tmp_path / "v").exists()
+
+
+def test_validate_on_another_trace_of_the_same_unit_and_of_another_unit(tmp_path):
+    """Fitted on one trace, checked on a second trace of the same unit (passes at the
+    noise floor) and on a trace of a different unit (the mismatch is reported)."""
+    runner.invoke(app, ["fit", str(DATA / "steps_200hz.csv"), "--out", str(tmp_path / "f")])
+    params = tmp_path / "f" / "fit.json"
+    same = runner.invoke(
+        app,
+        ["validate", str(DATA / "staircase_200hz.csv"), "--params", str(params), "--out",
+         str(tmp_path / "same")],
+    )  # fmt: skip
+    assert same.exit_code == 0, same.output
+    doc = json.loads((tmp_path / "same" / "validate.json").read_text())
+    assert doc["verdict"] == "at_noise_floor", doc["summary"]
+    assert (tmp_path / "same" / "validate.png").stat().st_size > 10_000
+    other = runner.invoke(
+        app,
+        ["validate", str(DATA / "seed_steps_100hz.csv"), "--params", str(params), "--out",
+         str(tmp_path / "other")],
+    )  # fmt: skip
+    doc = json.loads((tmp_path / "other" / "validate.json").read_text())
+    assert doc["verdict"] != "at_noise_floor"
+    worst = max(doc["metrics"].values(), key=lambda m: m["noise_ratio"])
+    assert worst["noise_ratio"] > 3
+    assert other.exit_code in (0, 3)
+
+
+def test_compare_is_a_command(tmp_path):
+    out = runner.invoke(app, ["compare", "--help"])
+    assert out.exit_code == 0 and "--old" in out.output and "--new" in out.output
+
+
+def test_diagnose_without_current(tmp_path):
+    """Was: KeyError 'current_A' on every trace without a current sensor."""
+    path = _without(tmp_path, "clean_steps", ["current_A"])
+    out = runner.invoke(app, ["diagnose", str(path), "--out", str(tmp_path / "d")])
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    assert doc["verdict"] == "none", doc["mismatches"]
+    assert "current_A" not in doc["baseline"]["metrics"]
+    assert {"a", "b", "c", "mu"} <= set(doc["baseline"]["params"])
+    assert np.isfinite(doc["baseline"]["params"]["a"])
