@@ -125,12 +125,35 @@ def fit(
     integrator: Annotated[
         str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
     ] = "exponential",
+    with_: Annotated[
+        str | None,
+        typer.Option(
+            "--with",
+            help="Catalog mechanisms to add to the chain, e.g. 'backlash' or "
+            "'force_hysteresis,sensor_delay[force_N]' (whole chain, one trace).",
+        ),
+    ] = None,
+    with_diagnosis: Annotated[
+        Path | None,
+        typer.Option(
+            "--with-diagnosis", help="Folder of an earlier `diagnose`: add what it found."
+        ),
+    ] = None,
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
 ) -> None:
     """Least-squares fit; writes OUT/fit.json and prints a summary."""
     _check_out(out)
+    mechanisms = _mechanism_option(with_, with_diagnosis)
+    if mechanisms is not None:
+        if len(traces) != 1 or stage != "chain" or free or per_trace or fix:
+            _fail(
+                "--with/--with-diagnosis fit one trace, whole chain, default parameters: "
+                "drop --stage, --free, --per-trace and --fix, or give one trace"
+            )
+        _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check)
+        return
     from .least_squares import fit as run_fit
     from .outputs import write_json
     from .report import fit_summary
@@ -156,6 +179,67 @@ def fit(
     typer.echo(fit_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
     if result.status != "ok":
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str] | None:
+    """Mechanism variants from --with and/or an earlier diagnosis (None: neither given)."""
+    if with_ is None and with_diagnosis is None:
+        return None
+    names = _names(with_) or []
+    if with_diagnosis is not None:
+        import json
+
+        path = with_diagnosis / "diagnosis.json" if with_diagnosis.is_dir() else with_diagnosis
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+            found = [f["mechanism"] for f in doc["findings"] if f.get("catalog", True)]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            _fail(f"--with-diagnosis {with_diagnosis}: cannot read diagnosis.json ({err})")
+        found = [m for m in found if not m.startswith("unexplained_")]
+        if not found:
+            _fail(
+                f"--with-diagnosis {with_diagnosis}: the diagnosis found no catalog mechanism "
+                "(verdict none or unexplained); fit without it"
+            )
+        names += [m for m in found if m not in names]
+    if not names:
+        _fail("--with: name at least one catalog mechanism")
+    return names
+
+
+def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check) -> None:
+    from .diagnose import DiagnoseError, fit_corrected
+    from .outputs import write_json
+
+    try:
+        (tr,) = _read([trace], ("chain",), mapping, fill_gaps, no_unit_check)
+        result = fit_corrected(tr, mechanisms)
+    except (*_bad_input_errors(), DiagnoseError) as err:
+        _fail(str(err))
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "fit.json", result.to_json() | {"traces": [str(trace)]})
+    typer.echo(
+        f"fit of {tr.name} with {', '.join(result.mechanisms)} (whole chain) - "
+        + ("converged" if result.converged else "NOT CONVERGED")
+    )
+    typer.echo(f"  {'param':<28}{'baseline':>13}{'corrected':>13}{'std. error':>12}")
+    for name, v in result.params.items():
+        b = result.baseline_params.get(name)
+        se = result.stderr.get(name)
+        typer.echo(
+            f"  {name:<28}{'-' if b is None else f'{b:.4g}':>13}{v:>13.4g}"
+            f"{'-' if se is None else f'{se:.2g}':>12}"
+        )
+    typer.echo("  whole chain NRMSE %, baseline -> corrected:")
+    for ch, m in result.metrics.items():
+        b = result.baseline_metrics.get(ch, {}).get("nrmse_pct")
+        typer.echo(f"   - {ch}: {b:.3g} -> {m['nrmse_pct']:.3g}")
+    typer.echo(f"  evidence: dBIC {result.delta_bic:.1f}")
+    for w in result.warnings:
+        typer.echo(f"  warning: {w}")
+    typer.echo(f"wrote {out / 'fit.json'}")
+    if not result.converged:
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 

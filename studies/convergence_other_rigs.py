@@ -142,7 +142,8 @@ force to within 1.5x its sensor noise (the torque, when force is not recorded), 
 recovers mu within 3 % where force and torque are recorded.
 
 **{int(df["success"].sum())}/{len(df)} cases succeeded.** Median fit time
-{df["seconds"].median():.1f} s (compilation included; 2-core machine).
+{df["seconds"].median():.1f} s, longest {df["seconds"].max():.1f} s (2-core machine; the first
+fit of each trace length and channel set includes compilation, later ones reuse it).
 
 {table("subset")}
 
