@@ -82,3 +82,23 @@ def test_report_of_a_concealed_trace_names_the_missing_physics(tmp_path):
     assert "force_hysteresis" in page and "friction hysteresis in caliper and wedge" in page
     assert "NRMSE % before" in page
     assert {"mismatch.png", "finding_1_force_hysteresis.png"} <= set(figures)
+
+
+def test_report_with_a_finding_shows_both_models_and_the_banner():
+    """Issue 10: when the diagnosis rejects the baseline, a banner says its intervals are
+    conditional on a model that leaves physics out, and the corrected parameters stand
+    beside the baseline's, the truth inside the corrected ones."""
+    import json
+
+    from ewb_ident.diagnose import diagnose
+
+    path = DATA / "concealed" / "force_hysteresis.csv"
+    trace = read_trace(path)
+    diagnosis = diagnose(trace)
+    page, _ = build_report([trace], fit(trace), diagnosis=diagnosis)
+    assert "rejects the baseline model" in page and "2b. Corrected model" in page
+    assert "force_hysteresis.h" in page and "corrected 90 %" in page
+    truth = json.loads(path.with_suffix(".truth.json").read_text())["params"]
+    doc = diagnosis.to_json()["augmented"]
+    for p in ("a", "b", "c"):
+        assert abs(doc["params"][p] - truth[p]) < 3 * doc["stderr"][p], p
