@@ -661,6 +661,9 @@ def validate(
     typer.echo(f"validation of {params} on {tr.name}: {result.verdict}")
     typer.echo(f"  {result.words}")
     for ch, m in result.metrics.items():
+        if m["rmse"] is None:
+            typer.echo(f"  {ch:<11} not finite (the simulation diverged)")
+            continue
         pe = m["percent_error"]
         typer.echo(
             f"  {ch:<11} RMSE {m['rmse']:.4g}  NRMSE {m['nrmse_pct']:.3g} %  "

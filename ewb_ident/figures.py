@@ -85,7 +85,7 @@ def mismatch_figure(result: DiagnosisResult) -> Figure:
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time, s")
     fig.suptitle(
-        f"{result.trace_name}: residual over the noise floor (phases: blue clamping, "
+        f"{result.trace_name[:60]}: residual over the noise floor (phases: blue clamping, "
         f"green saturation, orange release)  -  verdict: {result.verdict}",
         fontsize=10,
     )
@@ -111,7 +111,7 @@ def chain_figure(result: DiagnosisResult) -> Figure:
         ax.set_ylabel(_LABELS.get(ch, ch), fontsize=8)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time, s")
-    fig.suptitle(f"{result.trace_name}: whole chain from the voltage", fontsize=10)
+    fig.suptitle(f"{result.trace_name[:60]}: whole chain from the voltage", fontsize=10)
     return fig
 
 

@@ -34,6 +34,7 @@ import optimistix as optx
 
 from .initial import bell_start, motor_lag, motor_start
 from .metrics import SEED_PERCENT_ERROR, channel_metrics, noise_floor, noise_sigma
+from .outputs import null_nonfinite
 from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .physics import brake_torque, clamp_force, gap
 from .simulate import EXPONENTIAL, Integrator, _motor_states, heun_amplification
@@ -350,7 +351,7 @@ class FitResult:
         stderr = {n: self.stderr.get(n) for n in values}
         if len(self.params) == 1:
             stderr |= {n: self.stderr.get(f"{n}[0]") for n in self.per_trace if n in values}
-        return {
+        doc = {
             "params": values,
             "stderr": stderr,
             "metrics": self.metrics,
@@ -374,9 +375,11 @@ class FitResult:
             "seed_percent_error": SEED_PERCENT_ERROR,
             "warnings": list(self.warnings),
             "stderr_note": (
-                "null: parameter fixed, or not identified by the data (singular Jacobian)"
+                "null: parameter fixed, or not identified by the data (singular Jacobian), "
+                "or the model diverged (see warnings)"
             ),
         }
+        return null_nonfinite(doc)
 
 
 def motor_combinations(p: EWBParams) -> dict[str, float]:
@@ -954,7 +957,10 @@ def _null_direction(J: np.ndarray, shared: Sequence[str]) -> tuple[str, list[str
     parameters that make up the direction and the condition number."""
     if J.shape[1] < 2 or not np.all(np.isfinite(J)):
         return None
-    scale = np.linalg.norm(J, axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        scale = np.linalg.norm(J, axis=0)
+    if not np.all(np.isfinite(scale)):  # a diverging model: nothing to learn here
+        return None
     if np.any(scale == 0):  # a parameter the residuals do not depend on at all
         j = int(np.argmin(scale))
         return (shared[j], [shared[j]], float("inf")) if j < len(shared) else None
@@ -976,7 +982,8 @@ def _residual_sigma(r, channels, traces, old):
         s = {}
         for ch in chs:
             rk = r[i : i + t.n] * sig[ch]
-            s[ch] = max(float(np.sqrt(np.mean(rk * rk))), noise_floor(t[ch]))
+            with np.errstate(over="ignore", invalid="ignore"):
+                s[ch] = max(float(np.sqrt(np.mean(rk * rk))), noise_floor(t[ch]))
             i += t.n
         out.append(s)
     return out
@@ -1019,6 +1026,10 @@ def _judge(setup: _Setup, params, trace_metrics, pooled) -> tuple[bool, list[str
             )
     for t, nz, tm in zip(setup.traces, setup.noise, trace_metrics, strict=True):
         for ch, m in tm.items():
+            if m["rmse"] is None:
+                acceptable = False
+                notes.append(f"{t.name}: the simulated {ch} is not finite (the model diverged)")
+                continue
             floor = max(nz.get(ch, 0.0), noise_floor(t[ch]))
             ratio = m["rmse"] / floor
             if ratio > MISFIT_RATIO:

@@ -37,11 +37,15 @@ def rmse(sim: ArrayLike, meas: ArrayLike) -> float:
 def channel_metrics(sim: ArrayLike, meas: ArrayLike) -> dict[str, float | None]:
     """RMSE, NRMSE % and percent error of one channel (see module docstring).
 
-    A metric that does not exist (a constant or all-zero measured channel) is ``None``.
+    A metric that does not exist (a constant or all-zero measured channel, or a
+    simulation that diverged) is ``None``.
     """
     sim = np.asarray(sim, float)
     meas = np.asarray(meas, float)
-    e = rmse(sim, meas)
+    with np.errstate(over="ignore", invalid="ignore"):
+        e = rmse(sim, meas)
+    if not (np.all(np.isfinite(sim)) and np.isfinite(e)):  # a diverged simulation
+        return {"rmse": None, "nrmse_pct": None, "percent_error": None}
     span = float(np.max(meas) - np.min(meas))
     norm = float(np.linalg.norm(meas))
     return {

@@ -35,6 +35,19 @@ def plain(value: Any) -> Any:
     return value
 
 
+def null_nonfinite(value: Any) -> Any:
+    """``value`` (plain types) with every NaN or infinity replaced by ``None``: for
+    documents of a diverged computation, whose reason the document states elsewhere."""
+    value = plain(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: null_nonfinite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [null_nonfinite(v) for v in value]
+    return value
+
+
 def json_text(document: Any) -> str:
     """Pretty JSON text of ``document``.
 

@@ -101,22 +101,43 @@ def load_study(path: str | Path) -> Study:
         With the file and the key that is wrong.
     """
     path = Path(path)
+    if path.is_dir():
+        raise StudyError(f"{path}: is a folder; give a study file (TOML), e.g. studies/*.toml")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise StudyError(f"{path}: no such study file") from None
+    except UnicodeDecodeError:
+        raise StudyError(f"{path}: not a UTF-8 text file; give a study file (TOML)") from None
+    except OSError as err:
+        raise StudyError(f"{path}: cannot read it ({err.strerror})") from None
     except tomllib.TOMLDecodeError as err:
         raise StudyError(f"{path}: not valid TOML ({err}); fix the syntax") from None
     head = doc.get("study", {})
+    if not isinstance(head, dict):
+        raise StudyError(f"{path}: 'study' must be a [study] table, got {head!r}")
+    seed = head.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise StudyError(f"{path}: [study] seed must be a non-negative whole number, got {seed!r}")
+    for table in ("rig", "task"):
+        if not isinstance(doc.get(table, {}), dict):
+            raise StudyError(f"{path}: '{table}' must be a [{table}] table")
     if "script" in head:
-        script = (path.parent / head["script"]).resolve()
+        # A study file runs code: only a script in the study file's own folder.
+        name = head["script"]
+        if not isinstance(name, str) or Path(name).name != name or not name.endswith(".py"):
+            raise StudyError(
+                f"{path}: [study] script must name a .py file in the study file's own folder "
+                f"(no path), got {name!r}"
+            )
+        script = (path.parent / name).resolve()
         if not script.is_file():
-            raise StudyError(f"{path}: [study] script {head['script']!r} not found beside it")
+            raise StudyError(f"{path}: [study] script {name!r} not found beside it")
         return Study(
             name=str(head.get("name", path.stem)),
             task="script",
             repeats=1,
-            seed=int(head.get("seed", 0)),
+            seed=seed,
             grid={},
             options=dict(doc.get("task", {})),
             path=path,
@@ -148,7 +169,7 @@ def load_study(path: str | Path) -> Study:
         name=str(head.get("name", path.stem)),
         task=task,
         repeats=repeats,
-        seed=int(head.get("seed", 0)),
+        seed=seed,
         grid=grid,
         options=dict(doc.get("task", {})),
         path=path,

@@ -129,6 +129,8 @@ UNIT_ALIASES: dict[str, str] = {
 
 #: Longest run of consecutive missing samples that ``nan_policy="interpolate"`` fills.
 MAX_GAP = 5
+#: Most samples a trace may have (10 minutes at 1 kHz), checked before parsing.
+MAX_SAMPLES = 600_000
 
 #: Table suffixes :func:`read_trace` understands.
 SUFFIXES: tuple[str, ...] = (".csv", ".parquet", ".mat")
@@ -432,7 +434,24 @@ def _check_header(names: list[str], label: str) -> None:
         first[name] = j
 
 
+def _count_lines(path: Path) -> int:
+    """Lines in a file, counted in binary blocks (no parsing)."""
+    n = 0
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            n += block.count(b"\n")
+    return n
+
+
 def _read_csv(path: Path, label: str) -> _Raw:
+    lines = _count_lines(path)
+    if lines > MAX_SAMPLES + 2:
+        _fail(
+            label,
+            f"too long: about {lines - 1:,} rows; this tool reads at most {MAX_SAMPLES:,} "
+            "samples (10 min at 1 kHz)",
+            "split the recording into brake applications and fit them together",
+        )
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
             rows = list(csv.reader(handle))
@@ -577,6 +596,12 @@ def _read_sidecar(path: Path) -> dict[str, Any]:
         return {}
     try:
         data = json.loads(side.read_text(encoding="utf-8"))
+    except RecursionError:
+        _fail(
+            str(side),
+            "the sidecar is nested too deeply to be a sidecar",
+            'write one flat JSON object, e.g. {"r_eff_m": 0.15}',
+        )
     except json.JSONDecodeError as err:
         _fail(
             str(side),

@@ -145,8 +145,9 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
             continue
         m = channel_metrics(sim[ch], trace[ch])
         sd = max(noise_sigma(trace[ch]), noise_floor(trace[ch]))
-        metrics[ch] = m | {"noise_sigma": sd, "noise_ratio": m["rmse"] / sd}
-    finite = all(np.all(np.isfinite(sim[ch])) for ch in metrics)
+        ratio = None if m["rmse"] is None else m["rmse"] / sd
+        metrics[ch] = m | {"noise_sigma": sd, "noise_ratio": ratio}
+    finite = all(m["rmse"] is not None for m in metrics.values())
     pes = [
         metrics[ch]["percent_error"]
         for ch in ("force_N", "torque_Nm")
@@ -154,7 +155,7 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
     ]
     passes = finite and all(pe <= SEED_ACCEPTANCE_PCT for pe in pes)
     at_floor = finite and all(m["noise_ratio"] <= NOISE_RATIO for m in metrics.values())
-    worst = max(metrics, key=lambda ch: metrics[ch]["noise_ratio"]) if metrics else None
+    worst = max(metrics, key=lambda ch: metrics[ch]["noise_ratio"]) if metrics and finite else None
     if not finite:
         verdict, words = "mismatch", "the simulation diverged on this trace"
     elif at_floor:
@@ -204,11 +205,12 @@ def validation_figure(trace: Trace, result: ValidationResult):
         ax.plot(trace.time_s, trace[ch] * k, ".", ms=1.5, color="k", label="measured")
         ax.plot(trace.time_s, result.simulated[ch] * k, color="C1", lw=1, label="simulated")
         m = result.metrics[ch]
-        ax.set_title(
-            f"{ch}: NRMSE {m['nrmse_pct']:.2f} %, RMSE {m['noise_ratio']:.1f}x noise",
-            fontsize=9,
-            loc="left",
-        )
+        if m["noise_ratio"] is not None:
+            ax.set_title(
+                f"{ch}: NRMSE {m['nrmse_pct']:.2f} %, RMSE {m['noise_ratio']:.1f}x noise",
+                fontsize=9,
+                loc="left",
+            )
         ax.set_ylabel(label, fontsize=8)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time, s")

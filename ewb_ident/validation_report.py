@@ -88,7 +88,7 @@ def figure_overview(trace: Trace) -> bytes:
         ax.plot(trace.time_s, trace[c] * SCALE.get(c, 1.0), lw=0.8, color="k")
         ax.set_ylabel(CHANNEL_LABELS[c], fontsize=8)
     np.atleast_1d(axes)[-1].set_xlabel("time (s)")
-    fig.suptitle(f"{trace.name}: recorded channels", fontsize=10)
+    fig.suptitle(f"{_short(trace.name)}: recorded channels", fontsize=10)
     return _png(fig)
 
 
@@ -118,7 +118,7 @@ def figure_fit(trace: Trace, predictions: Mapping[str, np.ndarray], title: str) 
         bottom.set_ylabel("residual", fontsize=8)
     axes[0].legend(fontsize=7, loc="upper right")
     axes[-1].set_xlabel("time (s)  (shading: gapping / clamping / saturation / release)")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(_short(title, 90), fontsize=10)
     return _png(fig)
 
 
@@ -137,7 +137,7 @@ def figure_bell(params, traces: Sequence[Trace]) -> bytes:
         ax.text((x0 + x1) / 2 * 1e3, 0.5 * F_rt, name, ha="center", fontsize=8, color="0.3")
     for tr in traces:
         if tr.has("x_m") and tr.has("force_N"):
-            ax.plot(tr["x_m"] * 1e3, tr["force_N"], ".", ms=2, alpha=0.4, label=f"{tr.name}")
+            ax.plot(tr["x_m"] * 1e3, tr["force_N"], ".", ms=2, alpha=0.4, label=_short(tr.name, 40))
     ax.plot(x * 1e3, F, color="tab:red", lw=1.5, label="fitted bell")
     Fs = float(SEED.F_rt) / (1 + np.abs((x - float(SEED.c)) / float(SEED.a)) ** (2 * float(SEED.b)))
     ax.plot(x * 1e3, Fs, "--", color="0.4", lw=1, label="seed Table 2 (b = 2.82)")
@@ -207,6 +207,22 @@ def _table(head: Sequence[str], rows: Sequence[Sequence[Any]], left: int = 1) ->
     return f"<table><tr>{th}</tr>{body}</table>"
 
 
+def _short(text: str, limit: int = 60) -> str:
+    """``text`` cut to ``limit`` characters for a figure title."""
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _slug(name: str, limit: int = 40) -> str:
+    """A short, safe file-name part for a trace name (any length, any characters)."""
+    import hashlib
+    import re
+
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", name)[:limit]
+    if safe == name:
+        return safe
+    return f"{safe}_{hashlib.sha1(name.encode()).hexdigest()[:8]}"
+
+
 def _img(name: str, data: bytes, alt: str) -> str:
     b64 = base64.b64encode(data).decode()
     return f'<img src="data:image/png;base64,{b64}" alt="{_e(alt)}" title="{_e(name)}">'
@@ -270,12 +286,12 @@ def build_report(
     # Data overview.
     parts.append("<h2>1. Data</h2>")
     rows = []
-    for t in traces:
+    for k, t in enumerate(traces):
         cols = ", ".join(c for c in CHANNEL_LABELS if t.has(c))
         rows.append(
             [_e(t.name), _num(t.sample_rate_hz), _num(t.duration_s), _num(t.r_eff_m), _e(cols)]
         )
-        key = f"overview_{t.name}.png"
+        key = f"overview_{k}_{_slug(t.name)}.png"
         figures[key] = figure_overview(t)
         parts.append(_img(key, figures[key], f"recorded channels of {t.name}"))
     parts.insert(
@@ -351,7 +367,7 @@ def build_report(
         "its percent error; compare loosely).</p>"
     )
     for k, t in enumerate(traces):
-        key = f"fit_{t.name}.png"
+        key = f"fit_{k}_{_slug(t.name)}.png"
         figures[key] = figure_fit(
             t, fit.predictions[k], f"{t.name}: measured vs simulated ({fit.stage})"
         )

@@ -35,7 +35,9 @@ def test_report_holds_every_section_and_the_seed_values(report):
         "RMS residual by phase",
     ):
         assert text in page, text
-    assert {"bell.png", "fit_staircase_200hz.png", "overview_staircase_200hz.png"} <= set(figures)
+    assert {"bell.png", "fit_0_staircase_200hz.png", "overview_0_staircase_200hz.png"} <= set(
+        figures
+    )
     assert all(data[:8] == b"\x89PNG\r\n\x1a\n" for data in figures.values())
     assert path.read_text() == page and (path.parent / "bell.png").exists()
     assert page.count("data:image/png;base64,") == len(figures)  # self-contained

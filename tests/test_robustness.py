@@ -208,3 +208,75 @@ def test_diagnose_without_current(tmp_path):
     assert "current_A" not in doc["baseline"]["metrics"]
     assert {"a", "b", "c", "mu"} <= set(doc["baseline"]["params"])
     assert np.isfinite(doc["baseline"]["params"]["a"])
+
+
+def test_unstable_heun_says_so_and_exits_3(tmp_path):
+    """Was: ValueError traceback (non-finite metrics) and an empty --out."""
+    out = runner.invoke(
+        app,
+        [
+            "fit",
+            str(DATA / "seed_steps_100hz.csv"),
+            "--stage",
+            "motor",
+            "--integrator",
+            "heun",
+            "--out",
+            str(tmp_path),
+        ],
+    )
+    assert out.exit_code == 3, out.output
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["converged"] is False
+    assert any("Heun" in w and "unstable" in w for w in doc["warnings"])
+
+
+def test_a_sidecar_nested_too_deep_and_a_table_too_long_are_refused_early(tmp_path):
+    deep = tmp_path / "deep.csv"
+    deep.write_text((DATA / "steps_200hz.csv").read_text())
+    deep.with_suffix(".json").write_text("[" * 100_000 + "]" * 100_000)
+    out = runner.invoke(app, ["fit", str(deep), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 2 and "nested too deeply" in out.output
+    big = tmp_path / "big.csv"
+    with open(big, "w") as handle:
+        handle.write("time_s,voltage_V\n")
+        handle.write("".join(f"{k / 1000:.3f},0\n" for k in range(600_010)))
+    out = runner.invoke(app, ["fit", str(big), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 2 and "too long" in out.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_report_figures_survive_a_long_trace_name(tmp_path):
+    """Was: 'File name too long' for a legal 249-character trace name."""
+    from ewb_ident.validation_report import build_report, write_report
+
+    trace = read_trace(DATA / "staircase_200hz.csv")
+    long = Trace(
+        name="x" * 249, time_s=trace.time_s, channels=trace.channels, sidecar=trace.sidecar
+    )
+    result = fit(long, stage="force")
+    page, figures = build_report([long], result)
+    assert all(len(name) < 80 for name in figures)
+    write_report(tmp_path, page, figures)
+    assert (tmp_path / "index.html").exists()
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("study = 5\n", "must be a [study] table"),
+        ('[study]\nseed = "abc"\n', "seed must be a non-negative whole number"),
+        ('[study]\nscript = "/etc/passwd.py"\n', "in the study file's own folder"),
+        ('[study]\nscript = "../evil.py"\n', "in the study file's own folder"),
+    ],
+)
+def test_bad_study_files_are_refused(tmp_path, text, message):
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    out = runner.invoke(app, ["study", str(path), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 2 and message in out.output, out.output
+    out = runner.invoke(app, ["study", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 2 and "is a folder" in out.output
+    path.write_bytes(b"\xff\xfe\x00bad")
+    out = runner.invoke(app, ["study", str(path), "--out", str(tmp_path / "o")])
+    assert out.exit_code == 2 and "not a UTF-8" in out.output
