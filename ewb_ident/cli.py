@@ -7,6 +7,7 @@ file, column, row and what to do, and exits with code 2; nothing is written.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -685,9 +686,29 @@ def _main(
         raise typer.Exit(0)
 
 
+def _interrupted(signum, frame) -> None:
+    """SIGINT / SIGTERM: end the run now with 130 / 143, leaving no temporary file and
+    no final file that was not complete. (An exception raised here could land in a
+    callback that swallows it, e.g. JAX's garbage-collection hook, so the process ends
+    directly once the atomic writes' temporary files are removed.)"""
+    import os
+    import signal
+
+    from .outputs import remove_pending
+
+    remove_pending()
+    sys.stderr.write("interrupted\n")
+    sys.stderr.flush()
+    os._exit(130 if signum == signal.SIGINT else 143)
+
+
 def main() -> None:
     """Entry point of the ``ewb-ident`` script: float64 on, then the command."""
     import os
+    import signal
+
+    signal.signal(signal.SIGINT, _interrupted)
+    signal.signal(signal.SIGTERM, _interrupted)
 
     import jax
 

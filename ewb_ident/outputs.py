@@ -79,8 +79,24 @@ def _nonfinite(value: Any, where: str) -> str | None:
     return None
 
 
+#: Temporary files of atomic writes in progress, so that an interrupt (SIGINT, SIGTERM)
+#: can remove them before the process ends (see :func:`remove_pending`).
+_PENDING: set[Path] = set()
+
+
+def remove_pending() -> None:
+    """Remove the temporary files of every atomic write in progress (signal handlers)."""
+    for tmp in list(_PENDING):
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        _PENDING.discard(tmp)
+
+
 def _temp_beside(target: Path) -> Path:
     fd, name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    _PENDING.add(Path(name))
     os.close(fd)
     os.chmod(name, target.stat().st_mode & 0o777 if target.exists() else 0o644)
     return Path(name)
@@ -112,6 +128,7 @@ def atomic_write(writers: Sequence[tuple[Path, Writer]]) -> None:
     finally:
         for tmp, _ in temps:
             tmp.unlink(missing_ok=True)
+            _PENDING.discard(tmp)
 
 
 def write_text(path: str | os.PathLike[str], text: str) -> Path:

@@ -280,3 +280,27 @@ def test_bad_study_files_are_refused(tmp_path, text, message):
     path.write_bytes(b"\xff\xfe\x00bad")
     out = runner.invoke(app, ["study", str(path), "--out", str(tmp_path / "o")])
     assert out.exit_code == 2 and "not a UTF-8" in out.output
+
+
+@pytest.mark.parametrize(("sig", "code"), [("SIGINT", 130), ("SIGTERM", 143)])
+def test_an_interrupt_ends_the_run_with_its_code_and_no_files(tmp_path, sig, code):
+    """Was: a SIGINT swallowed by a JAX callback (the fit finished, exit 0, fit.json
+    written), and SIGTERM leaving temporary files behind."""
+    import shutil
+    import signal
+    import subprocess
+    import time
+
+    exe = shutil.which("ewb-ident")
+    assert exe is not None
+    out = tmp_path / "o"
+    proc = subprocess.Popen(
+        [exe, "fit", str(DATA / "steps_200hz.csv"), "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    time.sleep(4.0)  # inside imports, compilation or the solve
+    proc.send_signal(getattr(signal, sig))
+    proc.communicate(timeout=60)
+    assert proc.returncode == code
+    assert not out.exists() or not any(out.iterdir())
