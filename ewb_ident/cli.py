@@ -41,6 +41,14 @@ FillGaps = Annotated[
 NoUnitCheck = Annotated[
     bool, typer.Option("--no-unit-check", help="Skip the plausibility checks of units.")
 ]
+REff = Annotated[
+    float | None,
+    typer.Option(
+        "--r-eff",
+        help="Effective pad radius, m, for every trace (overrides the sidecar; default: "
+        "the sidecar's r_eff_m, else 0.15 m with a warning).",
+    ),
+]
 
 
 def _fail(message: str) -> None:
@@ -84,19 +92,28 @@ def _assignments(text: str | None, option: str) -> dict[str, float]:
     return out
 
 
-def _read(paths: list[Path], stages, mapping, fill_gaps, no_unit_check):
+def _read(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):
+    import dataclasses
+    import math
+
     from .traces import read_trace
 
-    return [
-        read_trace(
+    if r_eff is not None and not (math.isfinite(r_eff) and 0.02 <= r_eff <= 0.5):
+        _fail(f"--r-eff must be a pad radius within 0.02 to 0.5 m, got {r_eff!r}")
+    out = []
+    for p in paths:
+        tr = read_trace(
             p,
             mapping=mapping,
             stages=stages,
             nan_policy="interpolate" if fill_gaps else "raise",
             check_units=not no_unit_check,
         )
-        for p in paths
-    ]
+        if r_eff is not None:
+            side = dict(tr.sidecar) | {"r_eff_m": float(r_eff), "_r_eff_source": "--r-eff"}
+            tr = dataclasses.replace(tr, sidecar=side)
+        out.append(tr)
+    return out
 
 
 def _bad_input_errors() -> tuple[type[Exception], ...]:
@@ -143,6 +160,7 @@ def fit(
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
 ) -> None:
     """Least-squares fit; writes OUT/fit.json and prints a summary."""
     _check_out(out)
@@ -153,7 +171,7 @@ def fit(
                 "--with/--with-diagnosis fit one trace, whole chain, default parameters: "
                 "drop --stage, --free, --per-trace and --fix, or give one trace"
             )
-        _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check)
+        _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
         return
     from .least_squares import fit as run_fit
     from .outputs import write_json
@@ -163,7 +181,7 @@ def fit(
     if integrator not in ("exponential", "heun"):
         _fail(f"--integrator must be exponential or heun, got {integrator!r}")
     try:
-        trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check)
+        trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
         result = run_fit(
             trs,
             stage=stage,
@@ -209,12 +227,12 @@ def _mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[st
     return names
 
 
-def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check) -> None:
+def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff) -> None:
     from .diagnose import DiagnoseError, fit_corrected
     from .outputs import write_json
 
     try:
-        (tr,) = _read([trace], ("chain",), mapping, fill_gaps, no_unit_check)
+        (tr,) = _read([trace], ("chain",), mapping, fill_gaps, no_unit_check, r_eff)
         result = fit_corrected(tr, mechanisms)
     except (*_bad_input_errors(), DiagnoseError) as err:
         _fail(str(err))
@@ -375,6 +393,7 @@ def sample(
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
 ) -> None:
     """Posterior by MCMC (emcee) from the least-squares fit; writes OUT/summary.json,
     OUT/posterior.nc (ArviZ) and OUT/pairs.png, and prints a summary."""
@@ -411,7 +430,7 @@ def sample(
     t0 = time.perf_counter()
     try:
         trs = _read(
-            traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check
+            traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check, r_eff
         )
         if bar is not None:
             bar.start()
@@ -517,6 +536,7 @@ def report(
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
 ) -> None:
     """Validation report: OUT/index.html (self-contained) and PNG figures: data, fit,
     bell curve, parameters with 90 % intervals, errors beside the seed's, MCMC
@@ -527,7 +547,7 @@ def report(
 
     post = diag = None
     try:
-        trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check)
+        trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
         result = run_fit(trs, stage=stage)
         if posterior:
             from .posterior import sample as run_sample
@@ -576,6 +596,7 @@ def diagnose(
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
 ) -> None:
     """Locate where the model misses the recording, name the missing physics, add it and
     refit; writes OUT/diagnosis.json and figures, and prints a summary."""
@@ -587,7 +608,7 @@ def diagnose(
     if not bic_threshold > 0:
         _fail(f"--bic-threshold must be a positive number, got {bic_threshold!r}")
     try:
-        (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check)
+        (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check, r_eff)
         result = run_diagnose(tr, bic_threshold=bic_threshold, catalog=_names(catalog))
     except (*_bad_input_errors(), DiagnoseError) as err:
         _fail(str(err))
@@ -605,6 +626,7 @@ def compare(
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
 ) -> None:
     """Hardware-change refit: which parameters changed between OLD and NEW traces, with
     90 % intervals and P(changed), and the brake torque at the seed's operating point;
@@ -614,8 +636,8 @@ def compare(
     from .outputs import write_json
 
     try:
-        trs_old = _read(old, (stage,), mapping, fill_gaps, no_unit_check)
-        trs_new = _read(new, (stage,), mapping, fill_gaps, no_unit_check)
+        trs_old = _read(old, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
+        trs_new = _read(new, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
         result = run_compare(trs_old, trs_new, stage=stage)
     except _bad_input_errors() as err:
         _fail(str(err))
@@ -635,6 +657,7 @@ def validate(
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
 ) -> None:
     """Simulate fitted parameters on another trace: per-channel RMSE, NRMSE and percent
     error against the seed's 10 % acceptance and the trace's noise floor; writes
@@ -646,7 +669,7 @@ def validate(
 
     try:
         p = load_params(params)
-        (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check)
+        (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check, r_eff)
         result = run_validate(tr, p)
     except (*_bad_input_errors(), ValidateError) as err:
         _fail(str(err))

@@ -115,6 +115,14 @@ def structural_notes(stage: str, traces: Sequence[Trace], free: Sequence[str]) -
                 "kT/(R v + kT kb) and its lags (reported under 'derived'); R and v are held "
                 "fixed, so kb, M and L are effective values"
             )
+    if stage in ("torque", "chain"):
+        defaulted = [t.name for t in traces if t.r_eff_source == "default" and t.has("torque_Nm")]
+        if defaulted:
+            notes.append(
+                f"r_eff = 0.15 m (the seed's default) for {', '.join(defaulted)}: no sidecar "
+                "gives the pad radius, and mu scales with 1/r_eff; give it with --r-eff or "
+                "the sidecar's r_eff_m"
+            )
     if stage == "chain":
         names = [t.name for t in traces]
         if not any(t.has("torque_Nm") for t in traces):
@@ -265,6 +273,9 @@ class FitResult:
         level the final weights used (from the residuals), in the channel's unit.
     converged
         Whether the solver reported success on every solve.
+    r_eff
+        Per trace, the pad radius used (m) and where it came from (``--r-eff``,
+        ``sidecar`` or ``default``).
     acceptable
         Whether the fit passes the acceptance this tool states: a bell that is not
         flat (``b`` >= :data:`FLAT_BELL_B`) and force and torque percent errors within
@@ -304,6 +315,7 @@ class FitResult:
     sigma: tuple[dict[str, float], ...]
     converged: bool
     acceptable: bool
+    r_eff: tuple[tuple[float, str], ...]
     message: str
     n_steps: int
     cost: float
@@ -372,6 +384,10 @@ class FitResult:
             "condition_number": _finite_or_none(self.condition_number),
             "solver": {"message": self.message, "steps": self.n_steps, "cost": self.cost},
             "derived": motor_combinations(self.params[0]),
+            "r_eff_m": {
+                t["trace"]: {"value": v, "source": src}
+                for t, (v, src) in zip(per_trace, self.r_eff, strict=True)
+            },
             "seed_percent_error": SEED_PERCENT_ERROR,
             "warnings": list(self.warnings),
             "stderr_note": (
@@ -859,6 +875,7 @@ def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResu
         sigma=tuple(sigma),
         converged=ok,
         acceptable=acceptable,
+        r_eff=tuple((t.r_eff_m, t.r_eff_source) for t in traces),
         message=message,
         n_steps=steps,
         cost=float(0.5 * np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),

@@ -210,6 +210,14 @@ class Trace:
         return float(self.sidecar.get("r_eff_m", DEFAULT_R_EFF_M))
 
     @property
+    def r_eff_source(self) -> str:
+        """Where :attr:`r_eff_m` comes from: ``"--r-eff"`` (given on the command line),
+        ``"sidecar"`` or ``"default"`` (the seed paper's 0.15 m: nobody said)."""
+        if "r_eff_m" not in self.sidecar:
+            return "default"
+        return str(self.sidecar.get("_r_eff_source", "sidecar"))
+
+    @property
     def label(self) -> str:
         """The file path when there is one, else the name (for messages)."""
         return str(self.path) if self.path is not None else self.name

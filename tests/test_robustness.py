@@ -304,3 +304,44 @@ def test_an_interrupt_ends_the_run_with_its_code_and_no_files(tmp_path, sig, cod
     proc.communicate(timeout=60)
     assert proc.returncode == code
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_shipped_mapping_example_reads_a_renamed_log(tmp_path):
+    """The README's column-mapping format, by its example file."""
+    df = pd.read_csv(DATA / "steps_200hz.csv")
+    log = pd.DataFrame(
+        {
+            "Zeit": df["time_s"] * 1e3,
+            "Spannung": df["voltage_V"],
+            "Strom": df["current_A"] * 1e3,
+            "Winkel": np.radians(df["theta_deg"]),
+            "Kolbenweg": df["x_m"] * 1e3,
+            "Spannkraft": df["force_N"] / 1e3,
+            "Bremsmoment": df["torque_Nm"],
+        }
+    )
+    path = tmp_path / "log.csv"
+    log.to_csv(path, index=False)
+    trace = read_trace(path, mapping=DATA / "mapping_example.toml")
+    ref = read_trace(DATA / "steps_200hz.csv")
+    for col in ("time_s", "voltage_V", "current_A", "theta_deg", "x_m", "force_N", "torque_Nm"):
+        assert np.allclose(trace[col], ref[col], rtol=1e-9, atol=1e-12), col
+
+
+def test_r_eff_from_the_command_line_is_used_and_recorded(tmp_path):
+    """Was: r_eff silently 0.15 m for every file without a sidecar."""
+    path = tmp_path / "nosidecar.csv"
+    path.write_text((DATA / "steps_200hz.csv").read_text())
+    args = ["fit", str(path), "--stage", "torque"]
+    out = runner.invoke(app, [*args, "--out", str(tmp_path / "a")])
+    doc_a = json.loads((tmp_path / "a" / "fit.json").read_text())
+    assert doc_a["r_eff_m"]["nosidecar"] == {"value": 0.15, "source": "default"}
+    assert any("r_eff = 0.15 m (the seed's default)" in w for w in doc_a["warnings"])
+    out = runner.invoke(app, [*args, "--r-eff", "0.2", "--out", str(tmp_path / "b")])
+    assert out.exit_code == 0, out.output
+    doc_b = json.loads((tmp_path / "b" / "fit.json").read_text())
+    assert doc_b["r_eff_m"]["nosidecar"] == {"value": 0.2, "source": "--r-eff"}
+    # mu scales with 1/r_eff
+    assert abs(doc_b["params"]["mu"] * 0.2 / (doc_a["params"]["mu"] * 0.15) - 1) < 1e-6
+    out = runner.invoke(app, [*args, "--r-eff", "15", "--out", str(tmp_path / "c")])
+    assert out.exit_code == 2 and "--r-eff must be" in out.output
