@@ -262,8 +262,8 @@ def _check_options(
         raise SampleError(f"n_steps must be an integer >= 10, got {n_steps!r}")
     if max_steps is not None and (not isinstance(max_steps, int) or max_steps < n_steps):
         raise SampleError(f"max_steps must be an integer >= n_steps ({n_steps}), got {max_steps!r}")
-    if n_walkers is not None and (not isinstance(n_walkers, int) or n_walkers % 2):
-        raise SampleError(f"n_walkers must be an even integer, got {n_walkers!r}")
+    if n_walkers is not None and (not isinstance(n_walkers, int) or n_walkers % 2 or n_walkers < 4):
+        raise SampleError(f"n_walkers must be an even integer >= 4, got {n_walkers!r}")
     if not 0.0 < hdi_prob < 1.0:
         raise SampleError(f"hdi_prob must lie strictly between 0 and 1, got {hdi_prob!r}")
     if not min_ess > 0:
@@ -738,9 +738,11 @@ def _sample(
             f"{', '.join(excluded)}: widen them in the prior file, or check the fit"
         )
     D = len(names)
-    W = n_walkers or max(32, 4 * D)
-    if W < 2 * D:
-        raise SampleError(f"n_walkers must be at least twice the dimension ({2 * D}), got {W}")
+    W = max(32, 4 * D) if n_walkers is None else int(n_walkers)
+    if W < 2 * D or W % 2:
+        raise SampleError(
+            f"n_walkers must be even and at least twice the dimension ({2 * D}), got {W}"
+        )
     seq = np.random.SeedSequence(seed).spawn(2 * n_ensembles + 3)
     starts = _starts(lp, fits, u0, W, [np.random.default_rng(s) for s in seq[:n_ensembles]])
     t_compile = time.perf_counter()

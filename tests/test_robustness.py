@@ -345,3 +345,13 @@ def test_r_eff_from_the_command_line_is_used_and_recorded(tmp_path):
     assert abs(doc_b["params"]["mu"] * 0.2 / (doc_a["params"]["mu"] * 0.15) - 1) < 1e-6
     out = runner.invoke(app, [*args, "--r-eff", "15", "--out", str(tmp_path / "c")])
     assert out.exit_code == 2 and "--r-eff must be" in out.output
+
+
+def test_zero_walkers_is_refused_not_replaced(tmp_path):
+    """Was: --walkers 0 silently became 32."""
+    out = runner.invoke(
+        app,
+        ["sample", str(DATA / "steps_200hz.csv"), "--walkers", "0", "--out", str(tmp_path / "o")],
+    )
+    assert out.exit_code == 2 and "n_walkers must be an even integer >= 4" in out.output
+    assert not (tmp_path / "o").exists()
