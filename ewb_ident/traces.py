@@ -999,10 +999,15 @@ def _check_units(trace: Trace) -> None:
 
     def fix(name: str, unit: str) -> str:
         source = sources.get(name, name)
+        if name in declared:  # the checks run on the converted values too
+            said = trace.sidecar["_mapped"][name]["unit"]
+            return (
+                f"the mapping declares {source!r} in {said!r}: check that unit (is it "
+                f"{unit!r}?), or if the values are right {_UNIT_OVERRIDE}"
+            )
         return (
             f"map the column with its unit (mapping={{{source!r}: {{'column': "
-            f"{name!r}, 'unit': {unit!r}}}}}), or if the values are right declare unit "
-            f"{COLUMNS[name]!r} the same way or {_UNIT_OVERRIDE}"
+            f"{name!r}, 'unit': {unit!r}}}}}), or if the values are right {_UNIT_OVERRIDE}"
         )
 
     def peak(name: str) -> tuple[float, int]:
@@ -1016,7 +1021,7 @@ def _check_units(trace: Trace) -> None:
         ("current_A", "|i|", 200.0, "A", "looks like milliamperes", "mA"),
     )
     for name, symbol, limit, unit, looks, guess in checks:
-        if name in trace.channels and name not in declared:
+        if name in trace.channels:
             value, row = peak(name)
             if value > limit:
                 _fail(
@@ -1026,7 +1031,7 @@ def _check_units(trace: Trace) -> None:
                     column=_col(name, sources),
                     row=row,
                 )
-    if "theta_deg" in trace.channels and "theta_deg" not in declared:
+    if "theta_deg" in trace.channels:
         value, _ = peak("theta_deg")
         if value < 4 * math.pi:
             _fail(
@@ -1035,7 +1040,7 @@ def _check_units(trace: Trace) -> None:
                 fix("theta_deg", "rad"),
                 column=_col("theta_deg", sources),
             )
-    if "force_N" in trace.channels and "force_N" not in declared:
+    if "force_N" in trace.channels:
         value, row = peak("force_N")
         if value > 50000.0:
             _fail(

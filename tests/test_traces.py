@@ -302,13 +302,22 @@ def test_check_units_can_be_turned_off(tmp_path: Path) -> None:
     assert trace["x_m"].max() > 0.01
 
 
-def test_declared_unit_skips_the_unit_check(tmp_path: Path) -> None:
-    df = frame().assign(theta_deg=np.linspace(0.0, 10.0, N))  # small but true degrees
+def test_declared_units_are_still_checked_after_conversion(tmp_path: Path) -> None:
+    """Issue 11.7: radians declared 'deg' (or mm declared 'm') are caught after the
+    declared conversion, with a message naming the declaration; check_units=False is
+    the one override."""
+    df = frame().assign(theta_deg=np.linspace(0.0, 10.0, N))  # small: radians?
     path = write_csv(tmp_path, df)
     with pytest.raises(TraceError, match="looks like radians"):
         read_trace(path)
-    trace = read_trace(path, mapping={"theta_deg": {"column": "theta_deg", "unit": "deg"}})
+    declared = {"theta_deg": {"column": "theta_deg", "unit": "deg"}}
+    with pytest.raises(TraceError, match="the mapping declares 'theta_deg' in 'deg'"):
+        read_trace(path, mapping=declared)
+    trace = read_trace(path, mapping=declared, check_units=False)
     np.testing.assert_array_equal(trace["theta_deg"], df["theta_deg"].to_numpy())
+    mm = write_csv(tmp_path, frame().assign(x_m=signals()["x_m"] * 1e3), name="mm")
+    with pytest.raises(TraceError, match="the mapping declares 'x_m' in 'm'"):
+        read_trace(mm, mapping={"x_m": {"column": "x_m", "unit": "m"}})
 
 
 def test_from_arrays_and_validate() -> None:
