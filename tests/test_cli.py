@@ -17,7 +17,12 @@ runner = CliRunner()
 def test_help_explains_every_command():
     out = runner.invoke(app, ["--help"])
     assert out.exit_code == 0
-    for command in ("fit", "simulate"):
+    import re
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    documented = set(re.findall(r"^ewb-ident (\w+)", readme, flags=re.M))
+    assert {"fit", "sample", "diagnose", "report", "validate", "compare"} <= documented
+    for command in sorted(documented | {"simulate", "study"}):
         assert command in out.output
         sub = runner.invoke(app, [command, "--help"])
         assert sub.exit_code == 0 and "Usage" in sub.output
