@@ -73,6 +73,36 @@ def _check_out(out: Path, *, folder: bool = True) -> None:
         _fail(f"--out {out}: the folder is not writable; choose another")
 
 
+class _status:
+    """A one-line status on a terminal's stderr (``diagnose``, ``report``): what the
+    long computation is doing now and for how long; silent when stderr is not a
+    terminal (scripts, CI)."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self.live = None
+
+    def __enter__(self):
+        import time
+
+        self.t0 = time.perf_counter()
+        if not sys.stderr.isatty():
+            return lambda text: None
+        from rich.console import Console
+
+        self.live = Console(stderr=True).status(self.what)
+        self.live.start()
+
+        def say(text: str) -> None:
+            self.live.update(f"{self.what}: {text} ({time.perf_counter() - self.t0:.0f} s)")
+
+        return say
+
+    def __exit__(self, *exc) -> None:
+        if self.live is not None:
+            self.live.stop()
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -560,7 +590,8 @@ def report(
 
             typer.echo("diagnosing missing physics ...")
             try:
-                diag = run_diagnose(trs[0])
+                with _status("diagnosing") as say:
+                    diag = run_diagnose(trs[0], progress=say)
             except DiagnoseError as err:
                 typer.echo(f"no diagnosis: {err}")
         elif diagnosis:
@@ -609,7 +640,10 @@ def diagnose(
         _fail(f"--bic-threshold must be a positive number, got {bic_threshold!r}")
     try:
         (tr,) = _read([trace], None, mapping, fill_gaps, no_unit_check, r_eff)
-        result = run_diagnose(tr, bic_threshold=bic_threshold, catalog=_names(catalog))
+        with _status("diagnosing") as say:
+            result = run_diagnose(
+                tr, bic_threshold=bic_threshold, catalog=_names(catalog), progress=say
+            )
     except (*_bad_input_errors(), DiagnoseError) as err:
         _fail(str(err))
     paths = write_diagnosis(result, out, extra={"traces": [str(trace)]}, figures=figures)
@@ -737,7 +771,8 @@ def main() -> None:
 
     jax.config.update("jax_enable_x64", True)
     # Compiled XLA code is cached on disk, so a second run of a command skips compilation.
-    cache = os.environ.get("EWB_IDENT_CACHE", str(Path.home() / ".cache" / "ewb-ident" / "jax"))
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    cache = os.environ.get("EWB_IDENT_CACHE", str(Path(xdg) / "ewb-ident" / "jax"))
     if cache:
         jax.config.update("jax_compilation_cache_dir", cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -686,6 +686,7 @@ def diagnose(
     bic_threshold: float = BIC_THRESHOLD,
     max_mechanisms: int = MAX_MECHANISMS,
     catalog: Sequence[str] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> DiagnosisResult:
     """Locate, explain and correct the mismatch between the model and one trace.
 
@@ -700,6 +701,9 @@ def diagnose(
         Most catalog mechanisms selected.
     catalog
         Catalog ids to consider (default: all).
+    progress
+        Called with a short description of each step as it starts (the CLI shows it on
+        a terminal); the library itself never prints.
 
     Returns
     -------
@@ -729,6 +733,8 @@ def diagnose(
         pool = [m for m in pool if m.id in set(catalog)]
 
     ses = _Session(trace)
+    say = progress or (lambda text: None)
+    say("baseline fits of every stage")
     ses.baseline()
     timings["baseline_stages"] = time.perf_counter() - t_start
 
@@ -782,6 +788,7 @@ def diagnose(
         for tmpl in pool:
             if tmpl.variant in done:
                 continue
+            say(f"round {rnd}: trying {tmpl.variant}")
             mst = ses.mechanism_stages(tmpl)
             if not mst or not set(mst) & still:
                 continue
@@ -847,6 +854,7 @@ def diagnose(
         still = set(located) | _located(ses, current, structured=True)
     timings["explain"] = time.perf_counter() - t_start - sum(timings.values())
 
+    say("looking for physics outside the catalog")
     # 4. Unknown physics at stages still located.
     corrections: list[tuple[str, AugFit, dict[str, float], Any]] = []
     notes_explain: list[str] = []
@@ -891,6 +899,7 @@ def diagnose(
             current[st] = f_gen
     timings["unknown"] = time.perf_counter() - t_start - sum(timings.values())
 
+    say("confirming the findings on the whole chain")
     # 5. The whole chain with the findings added one at a time. The chain runs from the
     # logged voltage, which carries no sensor noise into the model: a finding must also
     # improve it (dBIC <= -threshold). That guards against explaining artefacts of a

@@ -199,15 +199,22 @@ def test_compare_is_a_command(tmp_path):
 
 
 def test_diagnose_without_current(tmp_path):
-    """Was: KeyError 'current_A' on every trace without a current sensor."""
+    """Was: KeyError 'current_A' (metrics and the chain figure) on every trace without a
+    current sensor. Also: the diagnosis reports its progress step by step."""
+    from ewb_ident.diagnose import diagnose
+    from ewb_ident.figures import write_diagnosis
+
     path = _without(tmp_path, "clean_steps", ["current_A"])
-    out = runner.invoke(app, ["diagnose", str(path), "--out", str(tmp_path / "d")])
-    assert out.exit_code == 0, out.output
+    steps: list[str] = []
+    result = diagnose(read_trace(path), progress=steps.append)
+    paths = write_diagnosis(result, tmp_path / "d", figures=True)
     doc = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     assert doc["verdict"] == "none", doc["mismatches"]
     assert "current_A" not in doc["baseline"]["metrics"]
     assert {"a", "b", "c", "mu"} <= set(doc["baseline"]["params"])
     assert np.isfinite(doc["baseline"]["params"]["a"])
+    assert any(p.name == "chain.png" for p in paths)
+    assert steps[0] == "baseline fits of every stage"
 
 
 def test_unstable_heun_says_so_and_exits_3(tmp_path):
