@@ -25,7 +25,6 @@ _PUBLIC = {
     "FitError": "least_squares",
     "FitResult": "least_squares",
     "fit": "least_squares",
-    "fit_batch": "least_squares",
     "DiagnoseError": "diagnose",
     "DiagnosisResult": "diagnose",
     "diagnose": "diagnose",
@@ -55,7 +54,6 @@ if TYPE_CHECKING:
     from .least_squares import FitError as FitError
     from .least_squares import FitResult as FitResult
     from .least_squares import fit as fit
-    from .least_squares import fit_batch as fit_batch
     from .metrics import channel_metrics as channel_metrics
     from .params import PARAMS as PARAMS
     from .params import SEED as SEED

@@ -214,22 +214,6 @@ def _solve(problem: _Problem, u0, data, rtol, atol, max_steps):
 
 
 @eqx.filter_jit
-def _solve_batch(problem: _Problem, u0, data, rtol, atol, max_steps):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-
-    def one(u, d):
-        sol = optx.least_squares(problem, solver, u, args=d, max_steps=max_steps, throw=False)
-        return sol.value, sol.result, sol.stats["num_steps"]
-
-    return jax.vmap(one)(u0, data)
-
-
-@eqx.filter_jit
-def _residuals_batch(problem: _Problem, u, data):
-    return jax.vmap(problem)(u, data)
-
-
-@eqx.filter_jit
 def _evaluate(problem: _Problem, u, data):
     """Weighted residuals, predictions and the Jacobian at ``u``, in one compiled call."""
     return problem(u, data), problem.predict(u, data), jax.jacfwd(problem)(u, data)
@@ -885,71 +869,6 @@ def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResu
         problem=problem,
         data=data,
     )
-
-
-def fit_batch(
-    traces: Sequence[Trace],
-    *,
-    stage: Stage = "chain",
-    free: Iterable[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    integrator: Integrator = EXPONENTIAL,
-    max_steps: int = 300,
-    rtol: float = 1e-6,
-    atol: float = 1e-8,
-) -> list[FitResult]:
-    """Fit many traces independently, as vectorised batches (``vmap`` of one solver).
-
-    Traces of the same length, rate and channels form one batch: their solves run as
-    one compiled, vectorised computation. Each result is the same as ``fit(trace, ...)``
-    would give, up to solver tolerance; a batch member that does not converge falls back
-    to :func:`fit` on its own (which tries a staged start).
-
-    Returns
-    -------
-    list of FitResult, in the order of ``traces``.
-    """
-    setups = [_setup(t, stage, free, None, fixed, integrator) for t in traces]
-    groups: dict[tuple, list[int]] = {}
-    for k, s in enumerate(setups):
-        groups.setdefault((s.problem, s.traces[0].n), []).append(k)
-    out: list[FitResult | None] = [None] * len(traces)
-    for (problem, _), members in groups.items():
-        sub = [setups[k] for k in members]
-        u0 = jnp.stack(
-            [
-                _to_u(
-                    problem,
-                    _start_values(s.traces, stage, s.free, s.per_trace, s.base),
-                    s.base,
-                    s.tdata,
-                )
-                for s in sub
-            ]
-        )
-        sigma = [s.sensor_sigma() for s in sub]
-        data = _stack([s.data(sg) for s, sg in zip(sub, sigma, strict=True)])
-        u1, res1, steps1 = _solve_batch(problem, u0, data, rtol, atol, max_steps)
-        r = np.asarray(_residuals_batch(problem, u1, data))
-        sigma = [
-            _residual_sigma(r[j], s.channels, s.traces, sg) if np.all(np.isfinite(r[j])) else sg
-            for j, (s, sg) in enumerate(zip(sub, sigma, strict=True))
-        ]
-        data = _stack([s.data(sg) for s, sg in zip(sub, sigma, strict=True)])
-        u2, res2, steps2 = _solve_batch(problem, u1, data, rtol, atol, max_steps)
-        for j, (k, s) in enumerate(zip(members, sub, strict=True)):
-            results = [jax.tree_util.tree_map(lambda x, j=j: x[j], rr) for rr in (res1, res2)]
-            steps = int(steps1[j]) + int(steps2[j])
-            one = jax.tree_util.tree_map(lambda x, j=j: x[j], data)
-            res = _finish(s, u2[j], one, sigma[j], results, steps, max_steps)
-            if not res.converged:
-                res = fit(s.traces, stage=stage, free=s.free, fixed=fixed, integrator=integrator)
-            out[k] = res
-    return out
-
-
-def _stack(datas: Sequence[dict]) -> dict:
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *datas)
 
 
 def _to_u(problem: _Problem, values: Mapping[str, float], base: EWBParams, tdata) -> jnp.ndarray:

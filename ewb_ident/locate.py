@@ -56,13 +56,6 @@ Z_MIN = 5.0
 MIN_SAMPLES = 12
 
 #: Stage -> (input channel, output channels) for the words.
-STAGE_IO: dict[str, tuple[str, tuple[str, ...]]] = {
-    "motor": ("voltage_V", ("theta_deg", "current_A")),
-    "gap": ("theta_deg", ("x_m",)),
-    "force": ("x_m", ("force_N",)),
-    "torque": ("force_N", ("torque_Nm",)),
-    "chain": ("voltage_V", ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A")),
-}
 STAGE_WORDS: dict[str, str] = {
     "motor": "motor stage (voltage -> angle, current)",
     "gap": "gap stage (angle -> displacement)",

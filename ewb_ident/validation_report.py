@@ -47,19 +47,25 @@ PHASE_COLOURS = {
 }
 
 
-def _plt():
-    import matplotlib
+class _Plt:
+    """``subplots`` on a :class:`matplotlib.figure.Figure`: no pyplot, no global backend
+    (the library never switches matplotlib's backend for its user)."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    @staticmethod
+    def subplots(*args, figsize=None, layout=None, **kwargs):
+        from matplotlib.figure import Figure
 
-    return plt
+        fig = Figure(figsize=figsize, layout=layout)
+        return fig, fig.subplots(*args, **kwargs)
+
+
+def _plt() -> _Plt:
+    return _Plt()
 
 
 def _png(fig) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _plt().close(fig)
     return buf.getvalue()
 
 

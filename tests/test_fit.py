@@ -164,26 +164,3 @@ def test_noise_levels_are_estimated_not_hand_set(staircase):
     # the residual noise level includes the force sensor's noise through the input
     assert result.sigma[0]["torque_Nm"] == pytest.approx(np.hypot(1.0, 1.13), rel=0.1)
     assert np.isfinite(result.cost)
-
-
-def test_batch_fit_matches_single_fits():
-    """Vectorised batches give the same answers as one fit per trace."""
-    from ewb_ident.least_squares import fit_batch
-
-    traces = [
-        rig.simulate_rig(
-            rig.vary(rig.RigParams(), np.random.default_rng(k), 0.05),
-            profile="steps",
-            sample_rate_hz=100.0,
-            seed=k,
-            name=f"unit{k}",
-        )[0]
-        for k in range(3)
-    ]
-    batch = fit_batch(traces, stage="force")
-    for trace, res in zip(traces, batch, strict=True):
-        single = fit(trace, stage="force")
-        assert res.converged and res.trace_names == (trace.name,)
-        for name in ("F_rt", "a", "b", "c"):
-            assert res.values[name] == pytest.approx(single.values[name], rel=1e-5)
-            assert res.stderr[name] == pytest.approx(single.stderr[name], rel=1e-3)

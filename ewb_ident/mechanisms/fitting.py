@@ -27,7 +27,7 @@ import numpy as np
 from ..params import MODEL_PARAMS, PARAMS, EWBParams
 from ..traces import Trace
 from .base import AbstractMechanism
-from .model import STAGE_OUTPUTS, n_substeps, predict
+from .model import n_substeps, predict
 
 #: Arrays are padded to a multiple of this many samples.
 PAD = 256
@@ -332,10 +332,6 @@ class AugFit:
     predictions: dict[str, np.ndarray] = field(repr=False)
     residuals: dict[str, np.ndarray] = field(repr=False)
 
-    def mechanism_values(self) -> dict[str, dict[str, float]]:
-        """Fitted values of each mechanism, keyed by its variant."""
-        return {m.variant: m.values() for m in self.mechanisms}
-
     def mechanism_stderr(self, m: AbstractMechanism) -> dict[str, float | None]:
         """Standard errors of one fitted mechanism's parameters."""
         return {i.name: self.stderr.get(f"{m.variant}.{i.name}") for i in m.param_info()}
@@ -522,12 +518,3 @@ def _stderr(J: np.ndarray, rss: float, n: int, u: np.ndarray, infos) -> list[flo
         se = float(abs(infos[idx].dp_du(u[idx])) * sd[j])
         out[idx] = se if np.isfinite(se) else None
     return out
-
-
-def stage_channels(stages: Sequence[str], available: Sequence[str]) -> tuple[str, ...]:
-    """Channels compared by a fit of these stages, given the trace's columns."""
-    if tuple(stages) == ("chain",):
-        chans = ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A")
-    else:
-        chans = tuple(c for s in stages for c in STAGE_OUTPUTS[s])
-    return tuple(c for c in chans if c in available)
