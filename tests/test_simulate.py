@@ -123,3 +123,10 @@ def test_chain_gradient_is_finite_at_the_bell_centre():
 
     g = jax.grad(loss)(jnp.asarray(9.57e-4))
     assert np.isfinite(float(g))
+    # Exactly at the centre (x == c), where |x - c|^(2b) has a log singularity: every
+    # derivative of the force stays finite (the floor in physics.clamp_force).
+    c, a = 9.57e-4, 6.295e-4
+    grads = jax.grad(lambda x, a, b, c: clamp_force(x, 3500.0, a, b, c), argnums=(0, 1, 2, 3))(
+        jnp.asarray(c), jnp.asarray(a), jnp.asarray(2.82), jnp.asarray(c)
+    )
+    assert all(np.isfinite(float(d)) for d in grads)
