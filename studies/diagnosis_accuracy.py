@@ -158,14 +158,14 @@ def case_plan() -> list[tuple[str, tuple[str, ...]]]:
     return [plan[k] for k in order]
 
 
-def make_case(i: int, ids: tuple[str, ...]):
+def make_case(i: int, ids: tuple[str, ...], seed: int = SEED):
     """The trace of case ``i`` with effects ``ids``, its truth and the effect's
-    visibility."""
+    visibility (``seed``: the study's; other studies draw other cases)."""
     import dataclasses
 
     from ewb_ident import rig
 
-    rng = np.random.default_rng([SEED, i])
+    rng = np.random.default_rng([seed, i])
     params = rig.vary(rig.RigParams(), rng, rel=0.05)
     params = dataclasses.replace(params, disc_speed_end_rad_s=float(rng.uniform(20.0, 50.0)))
     profile = str(rng.choice(["steps", "position", "staircase"]))
