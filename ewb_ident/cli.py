@@ -69,8 +69,16 @@ def _check_out(out: Path, *, folder: bool = True) -> None:
         probe = probe.parent
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         _fail(f"{out}: cannot write there ({probe} is not a writable folder); choose another")
-    if folder and out.exists() and not os.access(out, os.W_OK | os.X_OK):
-        _fail(f"--out {out}: the folder is not writable; choose another")
+    # Permissions do not tell everything (an immutable or read-only mounted folder, or
+    # root): try to create a file there, and remove it.
+    import tempfile
+
+    try:
+        fd, name = tempfile.mkstemp(dir=probe, prefix=".ewb-ident-probe-")
+        os.close(fd)
+        os.unlink(name)
+    except OSError as err:
+        _fail(f"{out}: cannot write there ({probe}: {err.strerror}); choose another")
 
 
 class _status:
