@@ -551,13 +551,28 @@ def _start_values(
             fixed={k: v for k, v in fixed.items() if k not in names},
             start={k: v for k, v in start.items() if k.split("[")[0] in names},
         )
-        if not np.isfinite(res.cost):
-            continue
+        if not np.isfinite(res.cost) or not all(
+            _usable(n, v) for p in res.params for n, v in p.as_dict().items() if n in names
+        ):
+            continue  # a stage fit that ran off to a bound: keep the data-driven start
         for k, p in enumerate(res.params):
             vals = p.as_dict() | {"theta0_deg": res.theta0_deg[k]}
             for n in names:
                 start[f"{n}[{k}]" if n in per_trace else n] = vals[n]
     return start
+
+
+def _usable(name: str, value: float) -> bool:
+    """Whether a fitted value can start another fit: finite, and for a log-scaled
+    parameter within 1e-6 to 1e6 of its reference (not run off towards 0 or infinity)."""
+    info = PARAMS[name]
+    if not np.isfinite(value):
+        return False
+    if info.transform == "log":
+        return 1e-6 * info.ref < value < 1e6 * info.ref
+    if info.transform == "logit":
+        return info.inside(value)
+    return True
 
 
 def _motor_start(
@@ -749,6 +764,7 @@ def fit(
     """
     setup = _setup(traces, stage, free, per_trace, fixed, integrator)
     st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
+    st = {k: v for k, v in st.items() if _usable(k.split("[")[0], v)}
     st |= dict(start or {})
     # No null direction reaches the solver: at the start, a combination of free
     # parameters the data cannot see (scaled Jacobian numerically singular) has its
@@ -765,6 +781,8 @@ def fit(
             break
         name, partners, cond = found
         value = float(st.get(name, getattr(setup.base, name)))
+        if not _usable(name, value):
+            value = float(getattr(setup.base, name))
         held_notes.append(
             f"the data cannot tell {', '.join(partners)} apart (condition number {cond:.2g} "
             f"at the start): {name} is held at {value:.4g} {PARAMS[name].unit}"
