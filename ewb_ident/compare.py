@@ -166,9 +166,9 @@ def compare(
 
     Two passes. First OLD and NEW are fitted separately: every parameter may differ, and
     the changes that exceed their tolerance with probability > 0.95 are screened. Then,
-    when each side is one trace, both are fitted jointly with only the screened
-    parameters (and the contact point ``c``, which a pad change moves) per trace and
-    every other parameter shared: the shared ones are then pinned down by both
+    when each side is one trace, both are fitted jointly with the screened parameters and
+    the whole bell (``F_rt, a, b, c``, which trade off and so move together) per trace
+    and every other parameter shared: the shared ones are then pinned down by both
     recordings, and the changes come with tighter, joint intervals.
 
     Parameters
@@ -197,8 +197,13 @@ def compare(
     if len(old) != 1 or len(new) != 1:
         return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
 
-    # Joint refit: screened parameters (and c) per trace, the rest shared.
-    moving = [c.name for c in screened if c.changed or c.name == "c"]
+    # Joint refit: screened parameters per trace, the rest shared. The bell's a, b, c and
+    # F_rt trade off strongly (when the piston never passes c, almost exactly), so they
+    # move as one block: sharing some of them while others move biases the moving ones
+    # (a shared a forced b to absorb a change of c) and gives intervals that exclude the
+    # true change.
+    bell = ("F_rt", "a", "b", "c")
+    moving = [c.name for c in screened if c.changed or c.name in bell]
     joint = fit([old[0], new[0]], stage=stage, free=fo.free, per_trace=[*moving, "theta0_deg"])
     if not joint.converged:
         return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
