@@ -104,3 +104,37 @@ def test_report_with_a_finding_shows_both_models_and_the_banner():
     doc = diagnosis.to_json()["augmented"]
     for p in ("a", "b", "c"):
         assert abs(doc["params"][p] - truth[p]) < 3 * doc["stderr"][p], p
+
+
+def test_report_command_writes_a_page(tmp_path):
+    """The README's headline command, through the CLI (posterior and diagnosis off here:
+    they have their own tests below and in test_posterior / test_diagnose)."""
+    from typer.testing import CliRunner
+
+    from ewb_ident.cli import app
+
+    out = CliRunner().invoke(
+        app,
+        [
+            "report",
+            str(DATA / "staircase_200hz.csv"),
+            "--no-posterior",
+            "--no-diagnose",
+            "--out",
+            str(tmp_path),
+        ],
+    )
+    assert out.exit_code == 0, out.output
+    page = (tmp_path / "index.html").read_text()
+    assert "2. Parameters" in page and "4. The clamping-force curve" in page
+
+
+def test_report_renders_the_posterior_section():
+    from ewb_ident.posterior import sample
+
+    trace = read_trace(DATA / "staircase_200hz.csv")
+    result = fit(trace, stage="force")
+    post = sample(trace, stage="force", n_steps=300, max_steps=300, seed=1)
+    page, figures = build_report([trace], result, posterior=post)
+    assert "5. Posterior (MCMC)" in page and "pair.png" in figures
+    assert "posterior mean" in page and "90 % interval" in page
