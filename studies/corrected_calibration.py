@@ -109,13 +109,12 @@ def report(rows: list[dict], per_id: int) -> str:
         lines.append(
             f"| {eid} | {len(sub)} | {int(sub['named'].sum())} | " + " | ".join(cells) + " |"
         )
-    tot = {
-        p: (
-            float((df[f"{p}_base_z"].astype(float).abs() <= Z90).mean()),
-            float((df[f"{p}_corr_z"].astype(float).abs() <= Z90).mean()),
-        )
-        for p in PARAMS
-    }
+
+    def share(col: str) -> float:
+        z = df[col].astype(float).dropna()
+        return float((z.abs() <= Z90).mean())
+
+    tot = {p: (share(f"{p}_base_z"), share(f"{p}_corr_z")) for p in PARAMS}
     lines += [
         "",
         "Overall share of intervals holding the truth (baseline -> corrected): "

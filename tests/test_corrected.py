@@ -42,7 +42,10 @@ def test_fit_with_the_planted_mechanism_recovers_the_truth(name, mechanism):
     result = fit_corrected(read_trace(DATA / f"{name}.csv"), [mechanism])
     assert result.converged
     assert result.delta_bic < -10
-    for p in ("a", "b", "c", "mu"):
+    # friction_speed: the rig's mu is at 50 rad/s, the model's at the mean contact speed
+    # (a different quantity), so only a, b, c are compared there.
+    names = ("a", "b", "c") if mechanism == "friction_speed" else ("a", "b", "c", "mu")
+    for p in names:
         se = result.stderr[p]
         assert se is not None and abs(result.params[p] - truth[p]) < 3 * se + 1e-3 * abs(
             truth[p]
