@@ -24,7 +24,11 @@ def test_planted_change_is_found_with_its_size_inside_the_interval(planted):
         true = getattr(new, name) - getattr(base, name)
         change = by[name]
         assert change.changed, name
-        assert change.low90 < true < change.high90, (name, change)
+        # One recording pair: a 90 % interval misses one time in ten, so the size is
+        # checked against the 99 % interval here; the 90 % rate is checked over 20 fresh
+        # pairs in test_intervals_of_a_change_hold_the_true_change (slow).
+        assert abs(change.delta - true) < 2.576 * change.stderr, (name, change)
+        assert change.low90 < change.delta < change.high90
         assert change.delta * true > 0  # direction
 
 
