@@ -268,6 +268,7 @@ def _mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[st
 def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff) -> None:
     from .diagnose import DiagnoseError, fit_corrected
     from .outputs import write_json
+    from .report import corrected_summary
 
     try:
         (tr,) = _read([trace], ("chain",), mapping, fill_gaps, no_unit_check, r_eff)
@@ -276,25 +277,7 @@ def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_
         _fail(str(err))
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "fit.json", result.to_json() | {"traces": [str(trace)]})
-    typer.echo(
-        f"fit of {tr.name} with {', '.join(result.mechanisms)} (whole chain) - "
-        + ("converged" if result.converged else "NOT CONVERGED")
-    )
-    typer.echo(f"  {'param':<28}{'baseline':>13}{'corrected':>13}{'std. error':>12}")
-    for name, v in result.params.items():
-        b = result.baseline_params.get(name)
-        se = result.stderr.get(name)
-        typer.echo(
-            f"  {name:<28}{'-' if b is None else f'{b:.4g}':>13}{v:>13.4g}"
-            f"{'-' if se is None else f'{se:.2g}':>12}"
-        )
-    typer.echo("  whole chain NRMSE %, baseline -> corrected:")
-    for ch, m in result.metrics.items():
-        b = result.baseline_metrics.get(ch, {}).get("nrmse_pct")
-        typer.echo(f"   - {ch}: {b:.3g} -> {m['nrmse_pct']:.3g}")
-    typer.echo(f"  evidence: dBIC {result.delta_bic:.1f}")
-    for w in result.warnings:
-        typer.echo(f"  warning: {w}")
+    typer.echo(corrected_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
     if not result.converged:
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
@@ -706,6 +689,7 @@ def validate(
     OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
     _check_out(out)
     from .outputs import atomic_write, json_text
+    from .report import validation_summary
     from .validate import ValidateError, load_params, validation_figure
     from .validate import validate as run_validate
 
@@ -724,17 +708,7 @@ def validate(
             (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
         ]
     )
-    typer.echo(f"validation of {params} on {tr.name}: {result.verdict}")
-    typer.echo(f"  {result.words}")
-    for ch, m in result.metrics.items():
-        if m["rmse"] is None:
-            typer.echo(f"  {ch:<11} not finite (the simulation diverged)")
-            continue
-        pe = m["percent_error"]
-        typer.echo(
-            f"  {ch:<11} RMSE {m['rmse']:.4g}  NRMSE {m['nrmse_pct']:.3g} %  "
-            f"% error {'-' if pe is None else f'{pe:.3g}'}  {m['noise_ratio']:.2f}x noise"
-        )
+    typer.echo(validation_summary(result, str(params)))
     typer.echo(f"wrote {out / 'validate.json'} and {out / 'validate.png'}")
     if not result.passes_seed:
         raise typer.Exit(EXIT_UNTRUSTWORTHY)

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .least_squares import FitResult, fit
-from .params import MODEL_PARAMS, PARAMS, EWBParams
+from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .simulate import simulate_chain
 from .traces import Trace
 
@@ -202,8 +202,7 @@ def compare(
     # move as one block: sharing some of them while others move biases the moving ones
     # (a shared a forced b to absorb a change of c) and gives intervals that exclude the
     # true change.
-    bell = ("F_rt", "a", "b", "c")
-    moving = [c.name for c in screened if c.changed or c.name in bell]
+    moving = [c.name for c in screened if c.changed or c.name in STAGE_PARAMS["force"]]
     joint = fit([old[0], new[0]], stage=stage, free=fo.free, per_trace=[*moving, "theta0_deg"])
     if not joint.converged:
         return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)

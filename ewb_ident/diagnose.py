@@ -93,7 +93,7 @@ from .mechanisms.fitting import (
     make_data,
 )
 from .mechanisms.model import STAGE_OUTPUTS, n_substeps
-from .metrics import channel_metrics, noise_floor, noise_sigma
+from .metrics import channel_metrics, noise_sigma, sensor_noise
 from .params import PARAMS, EWBParams
 from .physics import clamp_force
 from .simulate import _motor_states
@@ -405,11 +405,7 @@ class _Session:
                 "one input-output pair (voltage_V and theta_deg, theta_deg and x_m, x_m and "
                 "force_N, or force_N and torque_Nm); record these channels"
             )
-        self.noise = {
-            ch: max(noise_sigma(trace[ch]), noise_floor(trace[ch]))
-            for ch in CHANNELS
-            if trace.has(ch)
-        }
+        self.noise = {ch: sensor_noise(trace[ch]) for ch in CHANNELS if trace.has(ch)}
         self.labels = phase_labels(trace)
         self.cache: dict[tuple, AugFit] = {}
         self.ctx = self._facts()
@@ -591,6 +587,26 @@ class _Session:
         return tuple(s for s in m.stages if s in self.stages)
 
 
+def _chain_baseline(ses: _Session, messages: list[str]):
+    """The whole chain from the voltage without mechanisms: its data, free parameters,
+    per-channel noise levels and fit (started from the least-squares chain fit, or the
+    stage values when that fails)."""
+    trace = ses.trace
+    base_chain = _safe_fit(trace, "chain", messages)
+    start = ses.values if base_chain is None else base_chain.values
+    free = tuple(default_free("chain", [trace]))
+    sigma = {ch: ses.noise[ch] for ch in CHANNELS if trace.has(ch)}
+    data = with_signals(
+        make_data(trace, sigma, start, omega_ref=ses.ctx.get("omega_ref", 1.0)), trace
+    )
+    return data, free, sigma, fit_mechanisms(data, ("chain",), free, (), tuple(sigma))
+
+
+def _chain_metrics(trace: Trace, f: AugFit) -> dict[str, dict[str, float | None]]:
+    """Metrics of a fit's predictions for the channels the trace records."""
+    return {ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)}
+
+
 def _safe_fit(trace: Trace, stage: str, messages: list[str]):
     """The baseline fit of one stage by :func:`ewb_ident.least_squares.fit`, or ``None`` (and a
     message) when it fails numerically: the diagnosis then starts from the seed values."""
@@ -753,23 +769,8 @@ def diagnose(
     chain_fits: list[AugFit] = []
     chain_free: tuple[str, ...] = ()
     if chain_ok:
-        base_chain = _safe_fit(trace, "chain", ses.base_messages)
-        chain_start = ses.values if base_chain is None else base_chain.values
-        chain_free = tuple(default_free("chain", [trace]))
-        chain_sigma = {ch: ses.noise[ch] for ch in CHANNELS if trace.has(ch)}
-        chain_data = with_signals(
-            make_data(
-                trace,
-                chain_sigma,
-                chain_start,
-                x_play_m=0.0,
-                omega_ref=ses.ctx.get("omega_ref", 1.0),
-            ),
-            trace,
-        )
-        chain_fits.append(
-            fit_mechanisms(chain_data, ("chain",), chain_free, (), tuple(chain_sigma))
-        )
+        chain_data, chain_free, chain_sigma, f0 = _chain_baseline(ses, ses.base_messages)
+        chain_fits.append(f0)
     timings["baseline_chain"] = time.perf_counter() - t_start - sum(timings.values())
 
     # 3. Explain: forward selection over the catalog.
@@ -939,13 +940,6 @@ def diagnose(
     # Results.
     checks_after = {(c.stage, c.channel): c for s in ses.stages for c in ses.check(s, current[s])}
 
-    def metrics_of(f: AugFit | None) -> dict[str, dict[str, float | None]]:
-        if f is None:
-            return {}
-        return {
-            ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)
-        }
-
     stage_before = {
         s: {
             ch: channel_metrics(c.predicted, c.measured)
@@ -965,8 +959,14 @@ def diagnose(
     findings: list[Finding] = []
     by_variant = {f"unexplained_{s}": (s, f, ev, sel) for s, f, ev, sel in corrections}
     for k, mech in enumerate(added):
-        before = metrics_of(chain_fits[k]) if chain_ok else stage_before.get(mech.stage, {})
-        after = metrics_of(chain_fits[k + 1]) if chain_ok else stage_after.get(mech.stage, {})
+        before = (
+            _chain_metrics(trace, chain_fits[k]) if chain_ok else stage_before.get(mech.stage, {})
+        )
+        after = (
+            _chain_metrics(trace, chain_fits[k + 1])
+            if chain_ok
+            else stage_after.get(mech.stage, {})
+        )
         if isinstance(mech, GenericCorrection):
             s, f_gen, ev, sel = by_variant[mech.variant]
             ev = ev | _prefixed(chain_ev.get(mech.variant))
@@ -992,11 +992,9 @@ def diagnose(
         verdict = "none"
     elif any(f.catalog for f in findings):
         verdict = "found"
-    elif findings:
+    else:  # located, not explained by the catalog: never "none"
         verdict = "unexplained"
-    else:
-        # Located but not explained: say so, and where (never "none").
-        verdict = "unexplained"
+    if flagged_cells and not findings:  # say where, when not even a correction helps
         notes.append(
             "a mismatch is located ("
             + ", ".join(f"{m.stage} stage, {m.phase}: {m.score:.1f}x" for m in flagged_cells[:3])
@@ -1004,8 +1002,8 @@ def diagnose(
             "explains it beyond the noise in the whole chain: unexplained"
         )
     timings["total"] = time.perf_counter() - t_start
-    base_metrics = metrics_of(chain_fits[0]) if chain_ok else {}
-    aug_metrics = metrics_of(chain_fits[-1]) if chain_ok else {}
+    base_metrics = _chain_metrics(trace, chain_fits[0]) if chain_ok else {}
+    aug_metrics = _chain_metrics(trace, chain_fits[-1]) if chain_ok else {}
     return DiagnosisResult(
         trace_name=trace.name,
         verdict=verdict,
@@ -1354,7 +1352,6 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
     ses = _Session(trace)
     ses.baseline()
     notes = list(ses.base_messages)
-    tf = []
     for m in templates:
         if not ses.mechanism_stages(m):
             raise DiagnoseError(
@@ -1367,14 +1364,7 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
     stages = _order({s for m in templates for s in ses.mechanism_stages(m)})
     f_tf = ses.fit(stages, templates)
     tf = list(f_tf.mechanisms)
-    base_chain = _safe_fit(trace, "chain", notes)
-    chain_start = ses.values if base_chain is None else base_chain.values
-    chain_free = tuple(default_free("chain", [trace]))
-    sigma = {ch: ses.noise[ch] for ch in CHANNELS if trace.has(ch)}
-    data = with_signals(
-        make_data(trace, sigma, chain_start, omega_ref=ses.ctx.get("omega_ref", 1.0)), trace
-    )
-    f0 = fit_mechanisms(data, ("chain",), chain_free, (), tuple(sigma))
+    data, chain_free, sigma, f0 = _chain_baseline(ses, notes)
     f1 = fit_mechanisms(
         data,
         ("chain",),
@@ -1395,21 +1385,15 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
             f"-{BIC_THRESHOLD:g}): this trace gives no evidence for them"
         )
     tables = _model_tables([f0, f1], True)
-
-    def metrics(f: AugFit) -> dict[str, dict[str, float | None]]:
-        return {
-            ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)
-        }
-
     return CorrectedFit(
         trace_name=trace.name,
         mechanisms=tuple(m.variant for m in templates),
         params=tables["augmented_params"],
         stderr=tables["augmented_stderr"],
-        metrics=metrics(f1),
+        metrics=_chain_metrics(trace, f1),
         baseline_params=tables["baseline_params"],
         baseline_stderr=tables["baseline_stderr"],
-        baseline_metrics=metrics(f0),
+        baseline_metrics=_chain_metrics(trace, f0),
         converged=bool(f1.converged),
         delta_bic=float(ev["delta_bic"]),
         warnings=tuple(notes),

@@ -27,6 +27,13 @@ from scipy.signal import lfilter
 DEG_PER_RAD = 180.0 / np.pi
 
 
+def _lag_speed(V: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """Speed at the sample times of a unit-gain first-order lag ``tau`` driven from rest
+    by ``V`` under zero-order hold (exact): ``w[k+1] = q w[k] + (1 - q) V[k]``."""
+    q = np.exp(-dt / tau)
+    return lfilter([0.0, 1.0 - q], [1.0, -q], V)
+
+
 def motor_lag(voltage_V: np.ndarray, theta_deg: np.ndarray, dt: float) -> dict[str, float]:
     """First-order-lag-plus-integrator fit of voltage -> angle.
 
@@ -51,8 +58,7 @@ def motor_lag(voltage_V: np.ndarray, theta_deg: np.ndarray, dt: float) -> dict[s
     best = None
     for tau in np.geomspace(2e-3, 1.0, 48):
         q = np.exp(-dt / tau)
-        # omega (K = 1) at the sample times, exact under zero-order hold
-        w = lfilter([0.0, 1.0 - q], [1.0, -q], V)
+        w = _lag_speed(V, dt, tau)  # omega with K = 1
         # theta increment over [t_k, t_k+1): tau (1 - q) w_k + (dt - tau (1 - q)) V_k
         inc = tau * (1.0 - q) * w + (dt - tau * (1.0 - q)) * V
         y = np.concatenate([[0.0], np.cumsum(inc[:-1])]) * DEG_PER_RAD
@@ -90,8 +96,7 @@ def motor_start(
     if current_A is not None:
         # V = R i + kb omega (+ L di/dt, small between switching instants): a linear fit
         # with omega from the lag model (smooth, unlike a derivative of the angle).
-        q = np.exp(-dt / tau)
-        omega = lag["K"] * lfilter([0.0, 1.0 - q], [1.0, -q], np.asarray(voltage_V, float))
+        omega = lag["K"] * _lag_speed(np.asarray(voltage_V, float), dt, tau)
         A = np.stack([np.asarray(current_A, float), omega], axis=1)
         coef, *_ = np.linalg.lstsq(A, np.asarray(voltage_V, float), rcond=None)
         if coef[0] > 0:

@@ -33,7 +33,13 @@ import numpy as np
 import optimistix as optx
 
 from .initial import bell_start, motor_lag, motor_start
-from .metrics import SEED_PERCENT_ERROR, channel_metrics, noise_floor, noise_sigma
+from .metrics import (
+    SEED_ACCEPTANCE_PCT,
+    SEED_PERCENT_ERROR,
+    channel_metrics,
+    noise_floor,
+    noise_sigma,
+)
 from .outputs import null_nonfinite
 from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .physics import brake_torque, clamp_force, gap
@@ -219,11 +225,6 @@ def _evaluate(problem: _Problem, u, data):
     return problem(u, data), problem.predict(u, data), jax.jacfwd(problem)(u, data)
 
 
-@eqx.filter_jit
-def _costs(problem: _Problem, us, data):
-    return jax.vmap(lambda u: jnp.sum(problem(u, data) ** 2))(us)
-
-
 # ----------------------------------------------------------------------------- results
 
 
@@ -263,9 +264,9 @@ class FitResult:
     acceptable
         Whether the fit passes the acceptance this tool states: a bell that is not
         flat (``b`` >= :data:`FLAT_BELL_B`) and force and torque percent errors within
-        the seed paper's :data:`SEED_ACCEPTANCE_PCT`. A channel missing its noise floor
-        by more than :data:`MISFIT_RATIO` is a warning, not a rejection (the diagnosis
-        explains it).
+        the seed paper's 10 % (:data:`ewb_ident.metrics.SEED_ACCEPTANCE_PCT`). A channel
+        missing its noise floor by more than :data:`MISFIT_RATIO` is a warning, not a
+        rejection (the diagnosis explains it).
     message
         The solver's result, in words.
     n_steps
@@ -425,7 +426,7 @@ def _trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
     return d
 
 
-def _check_fixed(stage: str, fixed: Mapping[str, float], free: Iterable[str] | None) -> None:
+def _check_fixed(fixed: Mapping[str, float], free: Iterable[str] | None) -> None:
     """Every fixed value names a model parameter, is finite and inside its bounds, and is
     not also asked to vary."""
     for name, value in fixed.items():
@@ -488,10 +489,6 @@ def held_viscous_friction(traces: Sequence[Trace], base: EWBParams) -> float:
     return float(min(float(base.v), 0.2 * damping))
 
 
-MOTOR_NAMES = frozenset(("R", "L", "kb", "kT", "M", "v"))
-BELL_NAMES = ("F_rt", "a", "b", "c")
-
-
 def _start_values(
     traces: Sequence[Trace],
     stage: str,
@@ -518,10 +515,10 @@ def _start_values(
         F = np.concatenate([t["force_N"] * 2 * t.r_eff_m for t in traces])
         T = np.concatenate([t["torque_Nm"] for t in traces])
         start["mu"] = float(np.clip(F @ T / (F @ F), 0.01, 0.99))
-    motor = [n for n in free if n in MOTOR_NAMES or n == "theta0_deg"]
+    motor = [n for n in free if n in STAGE_PARAMS["motor"]]
     if stage in ("motor", "chain") and motor and all(t.has("theta_deg") for t in traces):
         start |= _motor_start(traces, motor, per_trace, base)
-    bell = [n for n in BELL_NAMES if n in want]
+    bell = [n for n in STAGE_PARAMS["force"] if n in want]
     pseudo = []
     if bell and stage in ("force", "chain"):
         pseudo = [_bell_trace(t, start, base) for t in traces]
@@ -663,7 +660,7 @@ class _Setup:
 def _setup(traces, stage, free, per_trace, fixed, integrator) -> _Setup:
     traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
     fixed = dict(fixed or {})
-    _check_fixed(stage, fixed, free)
+    _check_fixed(fixed, free)
     if free is None:
         free_t = tuple(n for n in default_free(stage, traces) if n not in fixed)
     else:
@@ -949,8 +946,6 @@ def _is(result, item) -> bool:
     return optx.RESULTS[result] == optx.RESULTS[item]
 
 
-#: The seed paper's acceptance: force and torque percent error below 10 %.
-SEED_ACCEPTANCE_PCT = 10.0
 #: A bell exponent below this is the degenerate flat bell (force stuck near F_rt/2).
 FLAT_BELL_B = 0.5
 #: A channel whose residual RMS exceeds this many times its sensor noise is a misfit.

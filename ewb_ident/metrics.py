@@ -26,6 +26,8 @@ from numpy.typing import ArrayLike
 
 #: The seed paper's reported percent errors, by channel.
 SEED_PERCENT_ERROR: dict[str, float] = {"force_N": 3.3, "torque_Nm": 1.2}
+#: The seed paper's acceptance: force and torque percent error below 10 %.
+SEED_ACCEPTANCE_PCT = 10.0
 
 
 def rmse(sim: ArrayLike, meas: ArrayLike) -> float:
@@ -77,3 +79,9 @@ def noise_sigma(y: ArrayLike) -> float:
     d2 = np.diff(np.asarray(y, float), n=2)
     mad = np.median(np.abs(d2 - np.median(d2)))
     return float(1.4826 * mad / np.sqrt(6.0))
+
+
+def sensor_noise(y: ArrayLike) -> float:
+    """The noise level a channel is judged against: :func:`noise_sigma`, floored at
+    :func:`noise_floor` (in the channel's unit)."""
+    return max(noise_sigma(y), noise_floor(y))

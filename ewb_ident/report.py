@@ -93,3 +93,38 @@ def posterior_summary(result) -> str:
         lines.append("")
         lines += [f"  warning: {w}" for w in result.warnings]
     return "\n".join(lines)
+
+
+def corrected_summary(result) -> str:
+    """Plain text of a fit with mechanisms (:class:`ewb_ident.diagnose.CorrectedFit`):
+    baseline beside corrected values, errors before and after, evidence, warnings."""
+    lines = [
+        f"fit of {result.trace_name} with {', '.join(result.mechanisms)} (whole chain) - "
+        + ("converged" if result.converged else "NOT CONVERGED"),
+        f"  {'param':<28}{'baseline':>13}{'corrected':>13}{'std. error':>12}",
+    ]
+    for name, v in result.params.items():
+        b, se = result.baseline_params.get(name), result.stderr.get(name)
+        lines.append(f"  {name:<28}{_fmt(b):>13}{_fmt(v):>13}{_fmt(se, 2):>12}")
+    lines.append("  whole chain NRMSE %, baseline -> corrected:")
+    for ch, m in result.metrics.items():
+        b = result.baseline_metrics.get(ch, {}).get("nrmse_pct")
+        lines.append(f"   - {ch}: {_fmt(b, 3)} -> {_fmt(m['nrmse_pct'], 3)}")
+    lines.append(f"  evidence: dBIC {result.delta_bic:.1f}")
+    lines += [f"  warning: {w}" for w in result.warnings]
+    return "\n".join(lines)
+
+
+def validation_summary(result, params_label: str) -> str:
+    """Plain text of a validation (:class:`ewb_ident.validate.ValidationResult`)."""
+    lines = [f"validation of {params_label} on {result.trace_name}: {result.verdict}"]
+    lines.append(f"  {result.words}")
+    for ch, m in result.metrics.items():
+        if m["rmse"] is None:
+            lines.append(f"  {ch:<11} not finite (the simulation diverged)")
+            continue
+        lines.append(
+            f"  {ch:<11} RMSE {_fmt(m['rmse'])}  NRMSE {_fmt(m['nrmse_pct'], 3)} %  "
+            f"% error {_fmt(m['percent_error'], 3)}  {_fmt(m['noise_ratio'], 3)}x noise"
+        )
+    return "\n".join(lines)

@@ -25,15 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import channel_metrics, noise_floor, noise_sigma
+from .metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
 from .params import MODEL_PARAMS, EWBParams
 from .simulate import simulate_chain
 from .traces import CHANNELS, Trace, TraceError
 
 #: Residual RMS up to this many times the sensor noise counts as "at the noise floor".
 NOISE_RATIO = 1.5
-#: The seed paper's acceptance on force and torque percent error, %.
-SEED_ACCEPTANCE_PCT = 10.0
 
 
 class ValidateError(ValueError):
@@ -144,7 +142,7 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
         if not trace.has(ch):
             continue
         m = channel_metrics(sim[ch], trace[ch])
-        sd = max(noise_sigma(trace[ch]), noise_floor(trace[ch]))
+        sd = sensor_noise(trace[ch])
         ratio = None if m["rmse"] is None else m["rmse"] / sd
         metrics[ch] = m | {"noise_sigma": sd, "noise_ratio": ratio}
     finite = all(m["rmse"] is not None for m in metrics.values())
@@ -168,8 +166,8 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
         m = metrics[worst]
         verdict = "passes_seed_acceptance" if passes else "mismatch"
         words = (
-            f"{worst} misses by {m['noise_ratio']:.1f}x its sensor noise (RMSE {m['rmse']:.3g}, "
-            f"NRMSE {m['nrmse_pct']:.2f} %)"
+            f"{worst} misses by {m['noise_ratio']:.1f}x its sensor noise (RMSE {m['rmse']:.3g}"
+            + (f", NRMSE {m['nrmse_pct']:.2f} %)" if m["nrmse_pct"] is not None else ")")
             + (
                 "; force and torque still within the seed's 10 % acceptance"
                 if passes
@@ -205,7 +203,7 @@ def validation_figure(trace: Trace, result: ValidationResult):
         ax.plot(trace.time_s, trace[ch] * k, ".", ms=1.5, color="k", label="measured")
         ax.plot(trace.time_s, result.simulated[ch] * k, color="C1", lw=1, label="simulated")
         m = result.metrics[ch]
-        if m["noise_ratio"] is not None:
+        if m["noise_ratio"] is not None and m["nrmse_pct"] is not None:
             ax.set_title(
                 f"{ch}: NRMSE {m['nrmse_pct']:.2f} %, RMSE {m['noise_ratio']:.1f}x noise",
                 fontsize=9,

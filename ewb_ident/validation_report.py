@@ -47,20 +47,13 @@ PHASE_COLOURS = {
 }
 
 
-class _Plt:
-    """``subplots`` on a :class:`matplotlib.figure.Figure`: no pyplot, no global backend
-    (the library never switches matplotlib's backend for its user)."""
+def _subplots(*args, figsize=None, layout=None, **kwargs):
+    """A figure and its axes, on a :class:`matplotlib.figure.Figure`: no pyplot and no
+    global backend (the library never switches matplotlib's backend for its user)."""
+    from matplotlib.figure import Figure
 
-    @staticmethod
-    def subplots(*args, figsize=None, layout=None, **kwargs):
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=figsize, layout=layout)
-        return fig, fig.subplots(*args, **kwargs)
-
-
-def _plt() -> _Plt:
-    return _Plt()
+    fig = Figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(*args, **kwargs)
 
 
 def _png(fig) -> bytes:
@@ -85,9 +78,8 @@ def _shade(ax, t: np.ndarray, phases: np.ndarray) -> None:
 
 def figure_overview(trace: Trace) -> bytes:
     """Every recorded channel against time."""
-    plt = _plt()
     cols = [c for c in CHANNEL_LABELS if trace.has(c)]
-    fig, axes = plt.subplots(
+    fig, axes = _subplots(
         len(cols), 1, figsize=(8, 1.6 * len(cols)), sharex=True, layout="constrained"
     )
     for ax, c in zip(np.atleast_1d(axes), cols, strict=True):
@@ -100,10 +92,9 @@ def figure_overview(trace: Trace) -> bytes:
 
 def figure_fit(trace: Trace, predictions: Mapping[str, np.ndarray], title: str) -> bytes:
     """Measured against simulated per channel, residuals below, phases shaded."""
-    plt = _plt()
     cols = [c for c in CHANNEL_LABELS if c in predictions]
     phases = _phases(trace)
-    fig, axes = plt.subplots(
+    fig, axes = _subplots(
         2 * len(cols),
         1,
         figsize=(8, 2.2 * len(cols)),
@@ -130,11 +121,10 @@ def figure_fit(trace: Trace, predictions: Mapping[str, np.ndarray], title: str) 
 
 def figure_bell(params, traces: Sequence[Trace]) -> bytes:
     """Clamping force against gap from the fitted bell, with its three regions."""
-    plt = _plt()
     F_rt, a, b, c = (float(getattr(params, n)) for n in ("F_rt", "a", "b", "c"))
     x = np.linspace(c - 3.0 * a, c + 0.5 * a, 600)
     F = F_rt / (1 + np.abs((x - c) / a) ** (2 * b))
-    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
+    fig, ax = _subplots(figsize=(7, 4), layout="constrained")
     rising = x < c  # F increases with x here
     lo, hi = (float(np.interp(q, F[rising] / F_rt, x[rising])) for q in (0.05, 0.95))
     regions = (((x[0], lo), "gapping"), ((lo, hi), "clamping"), ((hi, x[-1]), "saturation"))
@@ -351,7 +341,7 @@ def build_report(
     for w in fit.warnings:
         parts.append(f'<div class="warn">{_e(w)}</div>')
     if ddoc is not None and ddoc.get("verdict") == "found":
-        parts.append(_corrected_section(ddoc, fit, post))
+        parts.append(_corrected_section(ddoc, post))
 
     # Fit quality.
     parts.append("<h2>3. Measured against simulated</h2>")
@@ -393,7 +383,7 @@ def build_report(
     if post:
         parts.append(_posterior_section(post, posterior, figures))
     if diagnosis is not None:
-        parts.append(_diagnosis_section(diagnosis.to_json(), diagnosis, figures))
+        parts.append(_diagnosis_section(ddoc, diagnosis, figures))
 
     page = (
         f"<!doctype html><html lang=en><head><meta charset=utf-8><title>{_e(title)}</title>"
@@ -445,7 +435,7 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
     return "".join(out)
 
 
-def _corrected_section(ddoc: Mapping[str, Any], fit: FitResult, post: Any) -> str:
+def _corrected_section(ddoc: Mapping[str, Any], post: Any) -> str:
     """Baseline and corrected parameters side by side, with 90 % intervals."""
     aug = ddoc.get("augmented", {})
     base = ddoc.get("baseline", {})
