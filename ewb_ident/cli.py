@@ -204,10 +204,18 @@ def fit(
     _check_out(out)
     mechanisms = _mechanism_option(with_, with_diagnosis)
     if mechanisms is not None:
-        if len(traces) != 1 or stage != "chain" or free or per_trace or fix:
+        if (
+            len(traces) != 1
+            or stage != "chain"
+            or free
+            or per_trace
+            or fix
+            or integrator != "exponential"
+        ):
             _fail(
-                "--with/--with-diagnosis fit one trace, whole chain, default parameters: "
-                "drop --stage, --free, --per-trace and --fix, or give one trace"
+                "--with/--with-diagnosis fit one trace, whole chain, default parameters and "
+                "integrator: drop --stage, --free, --per-trace, --fix and --integrator, or "
+                "give one trace"
             )
         _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
         return
