@@ -49,6 +49,18 @@ REff = Annotated[
         "the sidecar's r_eff_m, else 0.15 m with a warning).",
     ),
 ]
+WithOption = Annotated[
+    str | None,
+    typer.Option(
+        "--with",
+        help="Catalog mechanisms to add to the chain, e.g. 'backlash' or "
+        "'force_hysteresis,sensor_delay[force_N]' (whole chain, one trace).",
+    ),
+]
+WithDiagnosisOption = Annotated[
+    Path | None,
+    typer.Option("--with-diagnosis", help="Folder of an earlier `diagnose`: add what it found."),
+]
 
 
 def _fail(message: str) -> None:
@@ -181,20 +193,8 @@ def fit(
     integrator: Annotated[
         str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
     ] = "exponential",
-    with_: Annotated[
-        str | None,
-        typer.Option(
-            "--with",
-            help="Catalog mechanisms to add to the chain, e.g. 'backlash' or "
-            "'force_hysteresis,sensor_delay[force_N]' (whole chain, one trace).",
-        ),
-    ] = None,
-    with_diagnosis: Annotated[
-        Path | None,
-        typer.Option(
-            "--with-diagnosis", help="Folder of an earlier `diagnose`: add what it found."
-        ),
-    ] = None,
+    with_: WithOption = None,
+    with_diagnosis: WithDiagnosisOption = None,
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
@@ -204,19 +204,7 @@ def fit(
     _check_out(out)
     mechanisms = _mechanism_option(with_, with_diagnosis)
     if mechanisms is not None:
-        if (
-            len(traces) != 1
-            or stage != "chain"
-            or free
-            or per_trace
-            or fix
-            or integrator != "exponential"
-        ):
-            _fail(
-                "--with/--with-diagnosis fit one trace, whole chain, default parameters and "
-                "integrator: drop --stage, --free, --per-trace, --fix and --integrator, or "
-                "give one trace"
-            )
+        _corrected_options(traces, stage, free, per_trace, fix, integrator)
         _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
         return
     from .least_squares import fit as run_fit
@@ -245,6 +233,23 @@ def fit(
     typer.echo(f"wrote {out / 'fit.json'}")
     if result.status != "ok":
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _corrected_options(traces, stage, free, per_trace, fix, integrator) -> None:
+    """Refuse options the corrected model does not take (it is one trace, whole chain)."""
+    if (
+        len(traces) != 1
+        or stage != "chain"
+        or free
+        or per_trace
+        or fix
+        or integrator != ("exponential")
+    ):
+        _fail(
+            "--with/--with-diagnosis take one trace, whole chain, default parameters and "
+            "integrator: drop --stage, --free, --per-trace, --fix and --integrator, or give "
+            "one trace"
+        )
 
 
 def _mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str] | None:
@@ -419,19 +424,26 @@ def sample(
         str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
     ] = "exponential",
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    with_: WithOption = None,
+    with_diagnosis: WithDiagnosisOption = None,
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
     r_eff: REff = None,
 ) -> None:
     """Posterior by MCMC (emcee) from the least-squares fit; writes OUT/summary.json,
-    OUT/posterior.nc (ArviZ) and OUT/pairs.png, and prints a summary."""
+    OUT/posterior.nc (ArviZ) and OUT/pairs.png, and prints a summary. With --with or
+    --with-diagnosis: the posterior of the chain corrected by those mechanisms."""
     _check_out(out)
+    mechanisms = _mechanism_option(with_, with_diagnosis)
+    if mechanisms is not None:
+        _corrected_options(traces, stage, free, per_trace, fix, integrator)
     import sys
     import time
 
+    from .diagnose import DiagnoseError
     from .outputs import atomic_write, json_text
-    from .posterior import SampleError
+    from .posterior import SampleError, sample_corrected
     from .posterior import sample as run_sample
     from .priors import PriorError
     from .report import posterior_summary
@@ -463,12 +475,7 @@ def sample(
         )
         if bar is not None:
             bar.start()
-        result = run_sample(
-            trs,
-            stage=stages,
-            free=_names(free),
-            per_trace=_names(per_trace),
-            fixed=_assignments(fix, "--fix"),
+        common = dict(
             priors=priors,
             noise_model=noise,
             n_walkers=walkers,
@@ -479,10 +486,21 @@ def sample(
             hdi_prob=hdi_prob,
             max_draws=draws,
             seed=seed,
-            integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
             progress=None if bar is None else progress,
         )
-    except (*_bad_input_errors(), SampleError, PriorError) as err:
+        if mechanisms is None:
+            result = run_sample(
+                trs,
+                stage=stages,
+                free=_names(free),
+                per_trace=_names(per_trace),
+                fixed=_assignments(fix, "--fix"),
+                integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+                **common,
+            )
+        else:
+            result = sample_corrected(trs[0], mechanisms, **common)
+    except (*_bad_input_errors(), SampleError, PriorError, DiagnoseError) as err:
         _fail(str(err))
     finally:
         if bar is not None:

@@ -1270,6 +1270,8 @@ class CorrectedFit:
         Whether the solver reported success.
     warnings
         Plain-language notes.
+    fit, data
+        The corrected least-squares fit and its data (the posterior starts from them).
     """
 
     trace_name: str
@@ -1284,6 +1286,8 @@ class CorrectedFit:
     delta_bic: float
     warnings: tuple[str, ...]
     predictions: dict[str, np.ndarray] = field(repr=False)
+    fit: AugFit | None = field(default=None, repr=False)
+    data: dict[str, Any] | None = field(default=None, repr=False)
 
     def to_json(self) -> dict[str, Any]:
         """A ``fit.json`` document (contract keys) for the corrected model."""
@@ -1398,4 +1402,6 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
         delta_bic=float(ev["delta_bic"]),
         warnings=tuple(notes),
         predictions={k: np.asarray(v) for k, v in f1.predictions.items()},
+        fit=f1,
+        data=data,
     )

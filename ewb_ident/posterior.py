@@ -62,7 +62,7 @@ import numpy as np
 
 from .least_squares import STAGES, FitError, FitResult, _Problem, fit
 from .params import PARAMS, STAGE_PARAMS, ParamInfo
-from .priors import Prior, load_priors
+from .priors import Prior, load_priors, mechanism_prior, param_info
 from .simulate import EXPONENTIAL, Integrator
 from .traces import STAGE_COLUMNS, Trace
 
@@ -281,7 +281,7 @@ def _build(fits: Sequence[FitResult], priors: Mapping[str, Prior], noise_model: 
         slices.append((len(names), len(names) + len(f.corr_names)))
         names += list(f.corr_names)
         u0.append(np.asarray(f.u, float))
-    bases = [n.split("[")[0] for n in names]
+    bases = [_key(n) for n in names]
     lp = _LogPost(
         problems=tuple(f.problem for f in fits),
         datas=tuple(f.data for f in fits),
@@ -293,7 +293,7 @@ def _build(fits: Sequence[FitResult], priors: Mapping[str, Prior], noise_model: 
             for k, chs in enumerate(f.problem.channels)
             for ch in chs
         ),
-        infos=tuple(PARAMS[b] for b in bases),
+        infos=tuple(param_info(b) for b in bases),
         priors=tuple(priors[b] for b in bases),
     )
     u = np.concatenate(u0) if u0 else np.zeros(0)
@@ -334,7 +334,7 @@ def _starts(lp, fits, u0, n_walkers, rngs) -> list[np.ndarray]:
         blocks.append(np.where(np.isfinite(f.corr), f.corr, 0.0) if f.corr.size else f.corr)
         for n, u in zip(f.corr_names, f.u, strict=True):
             se = f.stderr.get(n)
-            slope = abs(float(PARAMS[n.split("[")[0]].dp_du(u)))
+            slope = abs(float(_info(n).dp_du(u)))
             sd.append(se / slope if se is not None and slope > 0 and np.isfinite(se) else 1.0)
     C = np.zeros((u0.size, u0.size))
     i = 0
@@ -458,6 +458,10 @@ class PosteriorResult:
     timing
         Seconds spent fitting, compiling and sampling (not in the summary: the summary
         of a seed must not change between runs).
+    predictive
+        Stored draws with predictions, pointwise log-likelihood and replicated data.
+    mechanisms
+        Catalog mechanisms added to the seed chain (:func:`sample_corrected`), else empty.
     """
 
     stages: tuple[str, ...]
@@ -477,6 +481,7 @@ class PosteriorResult:
     fits: tuple[FitResult, ...] = field(repr=False)
     timing: dict[str, float]
     predictive: dict[str, Any] = field(repr=False)
+    mechanisms: tuple[str, ...] = ()
 
     def correlation(self, names: Iterable[str] | None = None) -> tuple[list[str], np.ndarray]:
         """Posterior correlation matrix of sampled parameters (default: a, b, c, mu)."""
@@ -502,7 +507,7 @@ class PosteriorResult:
                 "channels": list(self.noise),
             },
             "diagnostics": self.diagnostics,
-            "priors": {n: self.priors[n.split("[")[0]].to_json() for n in self.names}
+            "priors": {n: self.priors[_key(n)].to_json() for n in self.names}
             | {n: self.priors[n].to_json() for n in CONTRACT_PARAMS},
             "least_squares": {
                 n: _finite(float(v))
@@ -510,6 +515,7 @@ class PosteriorResult:
                 for n, v in zip(f.corr_names, _physical(f.corr_names, f.u), strict=True)
             },
             "seed": self.seed,
+            "mechanisms": list(self.mechanisms),
             "ess_note": (
                 "ESS = walkers x steps after burn-in / tau (emcee's integrated "
                 "autocorrelation time), summed over ensembles; r_hat: rank-normalised split "
@@ -574,9 +580,9 @@ class PosteriorResult:
                     if truth and ni in truth and nj in truth:
                         ax.plot(truth[nj], truth[ni], "r+", ms=10)
                 if i == k - 1:
-                    ax.set_xlabel(f"{nj} [{PARAMS[nj.split('[')[0]].unit}]")
+                    ax.set_xlabel(f"{nj} [{_info(nj).unit}]")
                 if j == 0 and i > 0:
-                    ax.set_ylabel(f"{ni} [{PARAMS[ni.split('[')[0]].unit}]")
+                    ax.set_ylabel(f"{ni} [{_info(ni).unit}]")
                 ax.tick_params(labelsize=7)
                 for axis in (ax.xaxis, ax.yaxis):
                     axis.set_major_locator(MaxNLocator(3))
@@ -590,10 +596,24 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def _key(name: str) -> str:
+    """The parameter a sampled name belongs to: ``c`` of ``c[1]`` (per trace); a
+    mechanism's ``"variant.param"`` as it is."""
+    return name if "." in name else name.split("[")[0]
+
+
+def _info(name: str) -> ParamInfo:
+    return param_info(_key(name))
+
+
+def _hint(name: str) -> str:
+    return HINTS.get(_key(name), "a trace in which this mechanism acts strongly")
+
+
 def _physical(names: Sequence[str], u: np.ndarray) -> np.ndarray:
     """Unconstrained -> physical values (NumPy), column by column."""
     u = np.asarray(u, float)
-    cols = [PARAMS[n.split("[")[0]].to_physical(u[..., j]) for j, n in enumerate(names)]
+    cols = [_info(n).to_physical(u[..., j]) for j, n in enumerate(names)]
     return np.stack([np.asarray(c, float) for c in cols], axis=-1)
 
 
@@ -727,10 +747,176 @@ def _sample(
     t_fit = time.perf_counter()
 
     lp, names, u0, segs = _build(fits, priors, noise_model, [t.time_s for t in traces])
+    run = _run_chains(
+        lp, fits, names, u0, priors, n_walkers, n_steps, max_steps, n_ensembles, min_ess, seed,
+        progress,
+    )  # fmt: skip
+    result = _assemble(
+        fits, traces, stages, lp, names, segs, run.samplers, run.chains, run.diag, priors,
+        hdi_prob, min_ess, max_draws, seed, run.seq, notes, fixed, fits[0].params[0].as_dict(),
+    )  # fmt: skip
+    return dataclasses.replace(result, timing=run.timing(t_start, t_fit))
+
+
+def sample_corrected(
+    trace: Trace,
+    mechanisms: Sequence[str],
+    *,
+    priors: str | Path | Mapping[str, Any] | None = None,
+    noise_model: str = "auto",
+    n_walkers: int | None = None,
+    n_steps: int = 2000,
+    max_steps: int | None = None,
+    n_ensembles: int = 2,
+    min_ess: float = 400.0,
+    hdi_prob: float = 0.9,
+    max_draws: int = 1000,
+    seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
+) -> PosteriorResult:
+    """Sample the posterior of the whole chain corrected by catalog mechanisms.
+
+    The start is :func:`ewb_ident.diagnose.fit_corrected` (the seed chain with the
+    mechanisms, fitted from the voltage); the sampled parameters are its free ones: the
+    base parameters the channels determine and every mechanism parameter
+    (``"variant.param"``). A mechanism parameter's prior is uniform (log-uniform when
+    positive and log-scaled) over the catalog's range unless the prior file has a table
+    of that name, e.g. ``["backlash.beta_deg"]``.
+
+    Parameters
+    ----------
+    trace
+        One trace with ``voltage_V`` and ``theta_deg``.
+    mechanisms
+        Catalog ids or variants, e.g. ``["backlash", "sensor_delay[force_N]"]``.
+    priors, noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob,
+    max_draws, seed, progress
+        As for :func:`sample`.
+
+    Returns
+    -------
+    PosteriorResult
+        Its ``mechanisms`` names the mechanisms; never raises for chains that did not
+        converge (``converged`` is False and the warnings say why).
+
+    Raises
+    ------
+    SampleError, PriorError, DiagnoseError
+        Settings, priors or mechanisms that cannot be used with this trace.
+    """
+    from .diagnose import fit_corrected
+
+    _check_options(
+        noise_model, n_walkers, n_steps, max_steps, n_ensembles, hdi_prob, min_ess, max_draws, seed
+    )
+    prior_table = load_priors(priors)
+    with jax.enable_x64(True):
+        t_start = time.perf_counter()
+        cf = fit_corrected(trace, mechanisms)
+        start = _corrected_start(trace, cf)
+        table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
+        t_fit = time.perf_counter()
+        lp, names, u0, segs = _build([start], table, noise_model, [trace.time_s])
+        run = _run_chains(
+            lp, [start], names, u0, table, n_walkers, n_steps, max_steps or 10 * n_steps,
+            n_ensembles, min_ess, seed, progress,
+        )  # fmt: skip
+        notes = [f"least-squares start (corrected chain): {w}" for w in cf.warnings]
+        result = _assemble(
+            [start], (trace,), ("chain",), lp, names, segs, run.samplers, run.chains, run.diag,
+            table, hdi_prob, min_ess, max_draws, seed, run.seq, notes, None, cf.params,
+        )  # fmt: skip
+    return dataclasses.replace(
+        result, timing=run.timing(t_start, t_fit), mechanisms=tuple(cf.mechanisms)
+    )
+
+
+class _AugChain(eqx.Module):
+    """The corrected chain as the log posterior reads a model: one trace's predicted
+    channels, trace length (the solver's data are padded)."""
+
+    problem: Any
+    n: int = eqx.field(static=True)
+    channels: tuple[tuple[str, ...], ...] = eqx.field(static=True)
+
+    def predict(self, u: jnp.ndarray, data: Mapping[str, Any]) -> list[dict[str, jnp.ndarray]]:
+        pred = self.problem.predict(u, data["aug"])
+        return [{ch: pred[ch][: self.n] for ch in self.channels[0]}]
+
+
+@dataclass(frozen=True)
+class _CorrectedStart:
+    """The corrected least-squares fit as the start of a posterior: what :func:`_build`
+    and :func:`_starts` read from a :class:`~ewb_ident.least_squares.FitResult`."""
+
+    trace_names: tuple[str, ...]
+    corr_names: tuple[str, ...]
+    u: np.ndarray
+    corr: np.ndarray
+    stderr: dict[str, float | None]
+    problem: _AugChain
+    data: dict[str, Any] = field(repr=False)
+    predictions: list[dict[str, np.ndarray]] = field(repr=False)
+
+
+def _corrected_start(trace: Trace, cf) -> _CorrectedStart:
+    from .mechanisms.fitting import _res_jac
+
+    f, aug, n = cf.fit, cf.data, trace.n
+    names = list(f.problem.free) + [
+        f"{m.variant}.{i.name}" for m in f.problem.templates() for i in m.param_info()
+    ]
+    chans = tuple(f.problem.channels)
+    J = np.asarray(_res_jac(f.problem, jnp.asarray(f.u), aug)[1])
+    cov = np.linalg.pinv(J.T @ J)
+    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    data = {
+        "aug": aug,
+        "traces": [
+            {ch: jnp.asarray(trace[ch]) for ch in chans}
+            | {"sigma": {ch: jnp.asarray(1.0 / float(aug["w"][ch][0])) for ch in chans}}
+        ],
+    }
+    return _CorrectedStart(
+        trace_names=(trace.name,),
+        corr_names=tuple(names),
+        u=np.asarray(f.u, float),
+        corr=cov / np.outer(sd, sd),
+        stderr={n_: f.stderr.get(n_) for n_ in names},
+        problem=_AugChain(f.problem, n, (chans,)),
+        data=data,
+        predictions=[{ch: np.asarray(f.predictions[ch]) for ch in chans}],
+    )
+
+
+@dataclass(frozen=True)
+class _Run:
+    samplers: list
+    chains: list[np.ndarray]
+    diag: dict[str, Any]
+    seq: list
+    t_compile: float
+    t_sample: float
+
+    def timing(self, t_start: float, t_fit: float) -> dict[str, float]:
+        return {
+            "fit_s": t_fit - t_start,
+            "compile_and_start_s": self.t_compile - t_fit,
+            "sampling_s": self.t_sample - self.t_compile,
+            "summary_s": time.perf_counter() - self.t_sample,
+        }
+
+
+def _run_chains(
+    lp, fits, names, u0, priors, n_walkers, n_steps, max_steps, n_ensembles, min_ess, seed,
+    progress,
+) -> _Run:  # fmt: skip
+    """Independent emcee ensembles from the least-squares optimum, extended until every
+    convergence criterion holds or ``max_steps`` is reached."""
     excluded = [
         n
         for n, v in zip(names, _physical(names, u0), strict=True)
-        if not np.isfinite(float(priors[n.split("[")[0]].logpdf(v, np)))
+        if not np.isfinite(float(priors[_key(n)].logpdf(v, np)))
     ]
     if excluded:
         raise SampleError(
@@ -776,19 +962,7 @@ def _sample(
             tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], done)))
             need = diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (n_ensembles * W))
             target = int(min(max_steps, max(1.2 * need, done + max(CHUNK, done // 2))))
-    t_sample = time.perf_counter()
-
-    result = _assemble(
-        fits, traces, stages, lp, names, segs, samplers, chains, diag, priors, hdi_prob, min_ess,
-        max_draws, seed, seq, notes, fixed,
-    )  # fmt: skip
-    timing = {
-        "fit_s": t_fit - t_start,
-        "compile_and_start_s": t_compile - t_fit,
-        "sampling_s": t_sample - t_compile,
-        "summary_s": time.perf_counter() - t_sample,
-    }
-    return dataclasses.replace(result, timing=timing)
+    return _Run(samplers, chains, diag, seq, t_compile, time.perf_counter())
 
 
 def _poor(f: FitResult) -> bool:
@@ -854,7 +1028,7 @@ def _entry(x: np.ndarray, hdi_prob: float, **more: Any) -> dict[str, Any]:
 
 def _assemble(
     fits, traces, stages, lp, names, segs, samplers, chains, diag, priors, hdi_prob, min_ess,
-    max_draws, seed, seq, notes, fixed,
+    max_draws, seed, seq, notes, fixed, held,
 ) -> PosteriorResult:  # fmt: skip
     E, (N, W, D), S = len(chains), chains[0].shape, len(segs)
     burn, thin = diag["burn"], diag["thin"]
@@ -882,7 +1056,7 @@ def _assemble(
     for j, n in enumerate(names):
         stats[n] = _entry(
             draws[n], hdi_prob, ess=float(diag["ess"][j]), r_hat=float(diag["rhat"][j]),
-            unit=PARAMS[n.split("[")[0]].unit, source="posterior",
+            unit=_info(n).unit, source="posterior",
             tau_steps=float(np.max(tau[n])),
         )  # fmt: skip
     nz = noise.reshape(E, T, W, S)
@@ -899,14 +1073,14 @@ def _assemble(
     # Priors: their spread, to say where the traces add nothing.
     prng = np.random.default_rng(seq[2 * E + 1])
     prior_sd: dict[str, float | None] = {}
-    for b in dict.fromkeys([n.split("[")[0] for n in names] + list(CONTRACT_PARAMS)):
+    for b in dict.fromkeys([_key(n) for n in names] + list(CONTRACT_PARAMS)):
         x = priors[b].sample(prng, 20000)
         prior_sd[b] = None if x is None else float(np.std(x))
     for n in names:
-        psd = prior_sd[n.split("[")[0]]
+        psd = prior_sd[_key(n)]
         stats[n]["prior_sd"] = psd
         stats[n]["sd_ratio"] = None if not psd else _finite(stats[n]["sd"] / psd)
-    ident = _identifiability(names, draws, stats, traces, stages, fits, fixed)
+    ident = _identifiability(names, draws, stats, traces, stages, fixed)
     for n in CONTRACT_PARAMS:
         if n in stats:
             continue
@@ -916,7 +1090,7 @@ def _assemble(
             stats[n] = _entry(x, hdi_prob, ess=None, r_hat=None, unit=PARAMS[n].unit)
             stats[n] |= {"source": "prior", "prior_sd": prior_sd[n], "sd_ratio": 1.0}
         else:
-            v = float(fits[0].params[0].as_dict()[n])
+            v = float(held[n])
             stats[n] = {"mean": v, "sd": 0.0, "hdi_low": v, "hdi_high": v, "ess": None}
             stats[n] |= {"r_hat": None, "unit": PARAMS[n].unit, "source": "fixed"}
 
@@ -1032,7 +1206,7 @@ def _convergence_warnings(diag, names, stuck, acc, N, W, E, min_ess) -> list[str
     return out
 
 
-def _identifiability(names, draws, stats, traces, stages, fits, fixed) -> list[dict[str, Any]]:
+def _identifiability(names, draws, stats, traces, stages, fixed) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     for n in names:
         r = stats[n].get("sd_ratio")
@@ -1041,7 +1215,7 @@ def _identifiability(names, draws, stats, traces, stages, fits, fixed) -> list[d
                 "kind": "prior_dominated", "params": [n], "sd_ratio": r,
                 "statement": f"{n} is not identified by these traces: its posterior is close to "
                 f"its prior (posterior sd {100 * r:.0f} % of the prior's). It needs "
-                f"{HINTS[n.split('[')[0]]}.",
+                f"{_hint(n)}.",
             })  # fmt: skip
     for n in CONTRACT_PARAMS:
         if n in names or n in (fixed or {}):
@@ -1080,8 +1254,7 @@ def _identifiability(names, draws, stats, traces, stages, fits, fixed) -> list[d
         })  # fmt: skip
         pairs = [p for p in pairs if not {p[0], p[1]} <= set(bell)]
     for m, k, c in pairs:
-        hint = HINTS[m.split("[")[0]]
-        other = HINTS[k.split("[")[0]]
+        hint, other = _hint(m), _hint(k)
         out.append({
             "kind": "ridge", "params": [m, k], "correlation": c,
             "statement": f"{m} and {k} trade off (posterior correlation {c:+.3f}): the traces "

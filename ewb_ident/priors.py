@@ -22,7 +22,7 @@ from typing import Any, Literal
 import jax.numpy as jnp
 import numpy as np
 
-from .params import PARAMS
+from .params import PARAMS, ParamInfo
 
 Dist = Literal["normal", "lognormal", "beta", "uniform", "loguniform", "flat"]
 
@@ -167,8 +167,13 @@ def parse_prior(name: str, table: Mapping[str, Any], where: str = "priors") -> P
         Unknown parameter or distribution, a missing or bad number, empty bounds.
     """
     where = f"{where}: [{name}]"
-    if name not in PARAMS:
-        raise PriorError(f"{where}: unknown parameter; the parameters are {', '.join(PARAMS)}")
+    try:
+        info = param_info(name)
+    except KeyError:
+        raise PriorError(
+            f"{where}: unknown parameter; the parameters are {', '.join(PARAMS)} and the "
+            'catalog mechanisms\' as "variant.param" (e.g. "backlash.beta_deg")'
+        ) from None
     if not isinstance(table, Mapping):
         raise PriorError(f"{where}: must be a table with 'dist' and its numbers")
     dist = table.get("dist")
@@ -200,7 +205,6 @@ def parse_prior(name: str, table: Mapping[str, Any], where: str = "priors") -> P
         raise PriorError(f"{where}: 'alpha' and 'beta' must be > 0, got {args}")
     if dist == "loguniform" and lo <= 0:
         raise PriorError(f"{where}: loguniform needs lower > 0, got {lo!r}")
-    info = PARAMS[name]
     if info.transform == "log" and lo < 0:
         lo = 0.0  # a log-transformed parameter is positive whatever the table says
     if info.transform == "logit":
@@ -209,6 +213,31 @@ def parse_prior(name: str, table: Mapping[str, Any], where: str = "priors") -> P
     if not isinstance(why, str):
         raise PriorError(f"{where}: 'why' must be text")
     return Prior(name=name, dist=dist, args=args, lower=lo, upper=hi, why=why)
+
+
+def param_info(name: str) -> ParamInfo:
+    """The declaration of a model parameter or of a mechanism's (``"variant.param"``).
+
+    Raises
+    ------
+    KeyError
+        Neither.
+    """
+    if name in PARAMS:
+        return PARAMS[name]
+    from .mechanisms import mechanism_param
+
+    return mechanism_param(name)
+
+
+def mechanism_prior(name: str) -> Prior:
+    """The default prior of a mechanism parameter: uniform over its declared range
+    (log-uniform for a positive, log-scaled one), the range the diagnosis fits it in."""
+    info = param_info(name)
+    dist = "loguniform" if info.transform == "log" else "uniform"
+    table = {"dist": dist, "lower": float(info.lower), "upper": float(info.upper)}
+    table["why"] = f"the catalog's range of {info.doc or name}"
+    return parse_prior(name, table, "mechanism defaults")
 
 
 def _read_toml(text: str, where: str) -> dict[str, Any]:

@@ -64,7 +64,9 @@ def posterior_summary(result) -> str:
     d = result.diagnostics
     pct = f"{100 * result.hdi_prob:g} %"
     lines = [
-        f"posterior of {', '.join(result.trace_names)} (stage: {'+'.join(result.stages)}) - "
+        f"posterior of {', '.join(result.trace_names)} (stage: {'+'.join(result.stages)}"
+        + (f", corrected by {', '.join(result.mechanisms)}" if result.mechanisms else "")
+        + ") - "
         + ("converged" if result.converged else "NOT CONVERGED (see the warnings)"),
         f"  {d['n_ensembles']} ensembles x {d['n_walkers']} walkers x {d['n_steps']} steps; "
         f"burn-in {d['burn']}, thin {d['thin']}, tau up to {d['tau_max']:.0f} steps, "

@@ -108,3 +108,64 @@ def test_with_and_free_together_are_refused(tmp_path):
     )
     assert out.exit_code == 2 and "--with" in out.output
     assert not (tmp_path / "o").exists()
+
+
+def test_sample_with_the_planted_mechanism_holds_the_truth(tmp_path):
+    """The posterior of the corrected chain: the 90 % HDIs of a, b, c, mu and of the
+    play's half width hold the truth; a prior table of a mechanism parameter is used."""
+    priors = tmp_path / "priors.toml"
+    priors.write_text(
+        '["backlash.beta_deg"]\ndist = "lognormal"\nmedian = 1.0\nsigma_log = 1.5\n'
+        'why = "play of a worm stage: a fraction of a degree to a few degrees"\n'
+    )
+    out = runner.invoke(
+        app,
+        [
+            "sample",
+            str(DATA / "backlash.csv"),
+            "--with",
+            "backlash",
+            "--priors",
+            str(priors),
+            "--steps",
+            "1000",
+            "--min-ess",
+            "300",
+            "--no-progress",
+            "--out",
+            str(tmp_path / "o"),
+        ],
+    )
+    assert out.exit_code == 0, out.output
+    assert "corrected by backlash" in out.output
+    doc = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert doc["mechanisms"] == ["backlash"] and doc["converged"]
+    assert doc["priors"]["backlash.beta_deg"]["dist"] == "lognormal"
+    truth = _truth("backlash")
+    want = {p: truth["params"][p] for p in ("a", "b", "c", "mu")}
+    want["backlash.beta_deg"] = truth["effects"]["backlash"]["beta_deg"]
+    for p, t in want.items():
+        s = doc["params"][p]
+        assert s["source"] == "posterior" and s["hdi_low"] <= t <= s["hdi_high"], (p, s, t)
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [["--stage", "force"], ["--fix", "R=1.0"], ["--integrator", "heun"]],
+    ids=["stage", "fix", "heun"],
+)
+def test_sample_with_refuses_options_it_cannot_honour(tmp_path, extra):
+    out = runner.invoke(
+        app,
+        ["sample", str(DATA / "backlash.csv"), "--with", "backlash", *extra]
+        + ["--out", str(tmp_path / "o")],
+    )
+    assert out.exit_code == 2 and "--with" in out.output, out.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_prior_for_an_unknown_mechanism_parameter_is_refused():
+    from ewb_ident.priors import PriorError, load_priors
+
+    with pytest.raises(PriorError, match=r"\[backlash.width\]: unknown parameter"):
+        load_priors({"backlash.width": {"dist": "uniform", "lower": 0.0, "upper": 1.0}})

@@ -8,6 +8,7 @@ tries (a sensor mechanism once per channel it can act on).
 
 from __future__ import annotations
 
+from ..params import ParamInfo
 from .backlash import Backlash as Backlash
 from .base import HOOKS as HOOKS
 from .base import AbstractMechanism as AbstractMechanism
@@ -52,3 +53,21 @@ def variants() -> list[AbstractMechanism]:
         else:
             out.append(cls())
     return out
+
+
+def mechanism_param(name: str) -> ParamInfo:
+    """The declaration of a mechanism parameter named ``"variant.param"`` (e.g.
+    ``"backlash.beta_deg"``, ``"sensor_delay[force_N].delay_s"``).
+
+    Raises
+    ------
+    KeyError
+        ``name`` names no parameter of a catalog mechanism variant.
+    """
+    variant, _, param = name.rpartition(".")
+    for m in variants():
+        if m.variant == variant:
+            for info in m.param_info():
+                if info.name == param:
+                    return info
+    raise KeyError(name)

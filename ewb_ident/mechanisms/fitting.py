@@ -318,6 +318,11 @@ class AugFit:
         Whether the solver reported success.
     predictions
         The model's fitted channels (NumPy, trace length).
+    residuals
+        Measured minus predicted, per compared channel.
+    u, problem
+        The solver's unconstrained optimum and the residual function it minimised
+        (a posterior starts from them).
     """
 
     stages: tuple[str, ...]
@@ -331,6 +336,8 @@ class AugFit:
     converged: bool
     predictions: dict[str, np.ndarray] = field(repr=False)
     residuals: dict[str, np.ndarray] = field(repr=False)
+    u: np.ndarray = field(repr=False)
+    problem: AugProblem = field(repr=False)
 
     def mechanism_stderr(self, m: AbstractMechanism) -> dict[str, float | None]:
         """Standard errors of one fitted mechanism's parameters."""
@@ -491,6 +498,8 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
         converged=bool(ok),
         predictions=pred,
         residuals=resid,
+        u=u_np,
+        problem=problem,
     )
 
 
