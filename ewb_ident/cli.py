@@ -615,16 +615,61 @@ def report(
             typer.echo("no diagnosis: it looks at one trace at a time (run `diagnose` on each)")
     except _bad_input_errors() as err:
         _fail(str(err))
-    page, figures = build_report(trs, result, posterior=post, diagnosis=diag)
+    cpost, cnote = _corrected_posterior(trs, diag, posterior, stage, seed)
+    page, figures = build_report(
+        trs,
+        result,
+        posterior=post,
+        diagnosis=diag,
+        corrected_posterior=cpost,
+        corrected_note=cnote,
+        command=_command_line(),
+    )
     path = write_report(out, page, figures)
     if diag is not None:
         typer.echo(diag.summary())
     typer.echo(f"wrote {path} ({len(figures)} figures)")
-    if result.status != "ok" or (post is not None and not post.converged):
+    if result.status != "ok" or any(p is not None and not p.converged for p in (post, cpost)):
         typer.echo(
-            "the fit or the posterior is not trustworthy (see the report's warnings)", err=True
+            "the fit or a posterior is not trustworthy (see the report's warnings)", err=True
         )
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _command_line() -> str:
+    """The command line as typed when run as ``ewb-ident`` (or ``python -m ewb_ident``);
+    from Python, the command and its parsed options."""
+    import shlex
+    import sys
+
+    import click
+
+    if Path(sys.argv[0]).name in ("ewb-ident", "__main__.py"):
+        return shlex.join(["ewb-ident", *sys.argv[1:]])
+    ctx = click.get_current_context()
+    opts = [f"{k}={v!r}" for k, v in ctx.params.items()]
+    return f"{ctx.command_path} ({', '.join(opts)})"
+
+
+def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
+    """The corrected model's posterior when the diagnosis found catalog physics, else
+    (None, why not); None, None when there is nothing to correct."""
+    if diag is None or diag.verdict != "found" or not diag.corrected_mechanisms():
+        return None, None
+    if not posterior:
+        return None, "its posterior was not run (--no-posterior)"
+    if stage != "chain":
+        return None, f"its posterior is of the whole chain, and this report is of stage {stage}"
+    from .diagnose import DiagnoseError
+    from .posterior import SampleError, sample_corrected
+
+    mechs = diag.corrected_mechanisms()
+    typer.echo(f"sampling the posterior of the corrected model ({', '.join(mechs)}) ...")
+    try:
+        return sample_corrected(trs[0], mechs, seed=seed), None
+    except (DiagnoseError, SampleError) as err:
+        typer.echo(f"no corrected posterior: {err}")
+        return None, f"its posterior could not be run ({err})"
 
 
 @app.command()

@@ -273,6 +273,15 @@ class DiagnosisResult:
     augmented_params: dict[str, float] = field(default_factory=dict)
     augmented_stderr: dict[str, float | None] = field(default_factory=dict)
 
+    def corrected_mechanisms(self) -> list[str]:
+        """The catalog mechanism variants found: what ``fit --with-diagnosis`` and the
+        corrected model switch on (empty when nothing in the catalog explains the data)."""
+        return [
+            f.variant
+            for f in self.findings
+            if f.catalog and not f.variant.startswith("unexplained_")
+        ]
+
     def to_json(self) -> dict[str, Any]:
         """The contract ``diagnosis.json`` document (plain JSON, no NaN)."""
         return {

@@ -218,6 +218,11 @@ class Trace:
         return str(self.sidecar.get("_r_eff_source", "sidecar"))
 
     @property
+    def column_sources(self) -> dict[str, str]:
+        """Column -> the file's column it was read from, for mapped columns (``--map``)."""
+        return _sources(self.sidecar)
+
+    @property
     def label(self) -> str:
         """The file path when there is one, else the name (for messages)."""
         return str(self.path) if self.path is not None else self.name

@@ -33,8 +33,16 @@ def test_report_holds_every_section_and_the_seed_values(report):
         "seed&#x27;s reported % error",
         "units slip",
         "RMS residual by phase",
+        "Summary",
+        "7. Provenance",
+        "SHA-256",
+        "r_eff",
     ):
         assert text in page, text
+    # x is shown in mm, as its heading says (not metres in e-notation)
+    trace = read_trace(DATA / "staircase_200hz.csv")
+    rmse_mm = fit(trace).metrics["x_m"]["rmse"] * 1e3
+    assert f"piston gap x (mm)</td><td class=\"\">{rmse_mm:.4g}<" in page
     assert {"bell.png", "fit_0_staircase_200hz.png", "overview_0_staircase_200hz.png"} <= set(
         figures
     )
@@ -75,35 +83,47 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
     assert extrema[0] < 60 and extrema[1] > 200  # text and figures drawn, not a blank page
 
 
-def test_report_of_a_concealed_trace_names_the_missing_physics(tmp_path):
-    from ewb_ident.diagnose import diagnose
-
-    trace = read_trace(DATA / "concealed" / "force_hysteresis.csv")
-    page, figures = build_report([trace], fit(trace), diagnosis=diagnose(trace))
-    assert "6. Diagnosis: physics the model leaves out" in page
-    assert "force_hysteresis" in page and "friction hysteresis in caliper and wedge" in page
-    assert "NRMSE % before" in page
-    assert {"mismatch.png", "finding_1_force_hysteresis.png"} <= set(figures)
-
-
-def test_report_with_a_finding_shows_both_models_and_the_banner():
-    """Issue 10: when the diagnosis rejects the baseline, a banner says its intervals are
-    conditional on a model that leaves physics out, and the corrected parameters stand
-    beside the baseline's, the truth inside the corrected ones."""
-    import json
-
+@pytest.fixture(scope="module")
+def hysteresis():
+    """The README's main job: its trace, baseline fit and diagnosis (computed once)."""
     from ewb_ident.diagnose import diagnose
 
     path = DATA / "concealed" / "force_hysteresis.csv"
     trace = read_trace(path)
-    diagnosis = diagnose(trace)
-    page, _ = build_report([trace], fit(trace), diagnosis=diagnosis)
+    return path, trace, fit(trace), diagnose(trace)
+
+
+def test_report_of_a_concealed_trace_names_the_missing_physics(hysteresis):
+    _, trace, result, diagnosis = hysteresis
+    page, figures = build_report([trace], result, diagnosis=diagnosis)
+    assert "6. Diagnosis: physics the model leaves out" in page
+    assert "force_hysteresis" in page and "friction hysteresis in caliper and wedge" in page
+    assert "NRMSE % before" in page
+    assert {"mismatch.png", "finding_1_force_hysteresis.png"} <= set(figures)
+    assert "linearised" in page  # no corrected posterior given: the page says so
+
+
+def test_report_with_a_finding_shows_both_models_and_the_banner(hysteresis):
+    """Issue 10: when the diagnosis rejects the baseline, a banner says its intervals are
+    conditional on a model that leaves physics out, and the corrected parameters stand
+    beside the baseline's with the corrected posterior's HDIs, the truth inside them."""
+    import json
+
+    from ewb_ident.posterior import sample_corrected
+
+    path, trace, result, diagnosis = hysteresis
+    assert diagnosis.corrected_mechanisms() == ["force_hysteresis"]
+    cpost = sample_corrected(trace, diagnosis.corrected_mechanisms(), n_steps=800, seed=2)
+    page, _ = build_report([trace], result, diagnosis=diagnosis, corrected_posterior=cpost)
     assert "rejects the baseline model" in page and "2b. Corrected model" in page
     assert "force_hysteresis.h" in page and "corrected 90 %" in page
+    assert "HDIs of its posterior (MCMC, converged)" in page
+    assert "<b>Corrected</b> with force_hysteresis" in page  # in the summary at the top
     truth = json.loads(path.with_suffix(".truth.json").read_text())["params"]
-    doc = diagnosis.to_json()["augmented"]
-    for p in ("a", "b", "c"):
-        assert abs(doc["params"][p] - truth[p]) < 3 * doc["stderr"][p], p
+    stats = cpost.to_summary_json()["params"]
+    for p in ("a", "b", "c", "mu"):
+        assert stats[p]["hdi_low"] <= truth[p] <= stats[p]["hdi_high"], p
+        assert f"{stats[p]['hdi_low'] * (1e3 if p in 'ac' else 1):.4g} … " in page, p
 
 
 def test_report_command_writes_a_page(tmp_path):
