@@ -31,11 +31,12 @@ from matplotlib.figure import Figure
 if TYPE_CHECKING:
     from .diagnose import DiagnosisResult, Finding
 
-_PHASE_COLORS = {
-    "gapping": "#ffffff",
-    "clamping": "#e8f0fb",
-    "saturation": "#eef7e8",
-    "release": "#fbefe6",
+#: One phase palette for every figure, the report's and the diagnosis's.
+PHASE_COLOURS = {
+    "gapping": "#f0f0f0",
+    "clamping": "#fde8c8",
+    "saturation": "#d8ecd8",
+    "release": "#d8e4f4",
 }
 _STAGE_CHANNELS = (
     ("motor", "theta_deg"),
@@ -54,13 +55,24 @@ _LABELS = {
 _SCALE = {"x_m": 1e3}
 
 
-def _shade_phases(ax, t: np.ndarray, labels: np.ndarray) -> None:
+def shade_phases(ax, t: np.ndarray, labels: np.ndarray) -> None:
+    """Shade each phase of the apply (:func:`ewb_ident.locate.phase_labels`) behind the
+    curves of ``ax`` (time axis ``t``, s)."""
     start = 0
     for k in range(1, t.size + 1):
         if k == t.size or labels[k] != labels[start]:
-            color = _PHASE_COLORS.get(str(labels[start]), "#ffffff")
+            color = PHASE_COLOURS.get(str(labels[start]), "#ffffff")
             ax.axvspan(t[start], t[min(k, t.size - 1)], color=color, lw=0, zorder=0)
             start = k
+
+
+def legend_with_phases(ax, **kwargs) -> None:
+    """The legend of ``ax`` with one patch per phase colour added."""
+    from matplotlib.patches import Patch
+
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Patch(color=c, label=name) for name, c in PHASE_COLOURS.items()]
+    ax.legend(handles=handles, fontsize=7, ncols=4, **kwargs)
 
 
 def mismatch_figure(result: DiagnosisResult) -> Figure:
@@ -71,7 +83,7 @@ def mismatch_figure(result: DiagnosisResult) -> Figure:
     t = result.trace.time_s
     flagged = {(m.stage, m.channel) for m in result.mismatches}
     for ax, (stage, ch) in zip(axes, rows, strict=False):
-        _shade_phases(ax, t, result.labels)
+        shade_phases(ax, t, result.labels)
         before = result.checks_before[(stage, ch)]
         ax.plot(t, before.normalized, color="0.6", lw=0.7, label="before")
         after = result.checks_after.get((stage, ch))
@@ -82,11 +94,10 @@ def mismatch_figure(result: DiagnosisResult) -> Figure:
         mark = "  <- mismatch located" if (stage, ch) in flagged else ""
         ax.set_ylabel(f"{stage}\n{ch}\nr / noise", fontsize=8)
         ax.set_title(f"{stage} stage, {ch}{mark}", fontsize=9, loc="left")
-    axes[0].legend(loc="upper right", fontsize=8)
+    legend_with_phases(axes[0], loc="upper right")
     axes[-1].set_xlabel("time, s")
     fig.suptitle(
-        f"{result.trace_name[:60]}: residual over the noise floor (phases: blue clamping, "
-        f"green saturation, orange release)  -  verdict: {result.verdict}",
+        f"{result.trace_name[:60]}: residual over the noise floor  -  verdict: {result.verdict}",
         fontsize=10,
     )
     return fig
@@ -139,14 +150,14 @@ def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
         top.set_ylabel(_LABELS.get(ch, ch))
         top.legend(fontsize=8)
     if before is not None:
-        _shade_phases(bottom, tr.time_s, result.labels)
+        shade_phases(bottom, tr.time_s, result.labels)
         k = _SCALE.get(ch, 1.0)
         bottom.plot(tr.time_s, before.residual * k, color="0.6", lw=0.7, label="before")
         if after is not None:
             bottom.plot(tr.time_s, after.residual * k, color="C0", lw=0.7, label="after")
         bottom.set_ylabel(f"residual\n{_LABELS.get(ch, ch)}", fontsize=8)
         bottom.set_xlabel("time, s")
-        bottom.legend(fontsize=8, loc="upper right")
+        legend_with_phases(bottom, loc="upper right")
     title = finding.explanation
     fig.suptitle(_wrap(f"{finding.effect}: {title}", 130), fontsize=8)
     return fig
@@ -172,24 +183,54 @@ def _finding_channel(finding: Finding) -> str:
 
 def _gap_view(ax, tr, before, after) -> bool:
     th = tr["theta_deg"]
-    ax.plot(th, before.measured * 1e3, ".", ms=1.5, color="k", label="measured")
-    ax.plot(th, before.predicted * 1e3, ".", ms=1, color="0.5", label="model before")
-    ax.plot(th, after.predicted * 1e3, ".", ms=1, color="C1", label="model after")
+    series = _curves(before, after, 1e3)
+    for y, style in series:
+        ax.plot(th, y, **style)
     ax.set_xlabel("pinion angle, deg")
     ax.set_ylabel("displacement, mm")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower right")
+    # The play shows where the motion reverses: the top of the stroke.
+    span = float(np.ptp(th))
+    _zoom(ax, th, series, th > float(np.max(th)) - 0.03 * span, "reversal")
     return True
 
 
 def _force_view(ax, tr, before, after) -> bool:
     x = tr["x_m"] * 1e3
-    ax.plot(x, before.measured, ".", ms=1.5, color="k", label="measured")
-    ax.plot(x, before.predicted, ".", ms=1, color="0.5", label="model before")
-    ax.plot(x, after.predicted, ".", ms=1, color="C1", label="model after")
+    series = _curves(before, after, 1.0)
+    for y, style in series:
+        ax.plot(x, y, **style)
     ax.set_xlabel("displacement, mm")
     ax.set_ylabel("force, N")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower right")
+    # A hysteresis loop is widest where the force is high.
+    f = before.measured
+    _zoom(ax, x, series, f > 0.5 * float(np.max(f)), "loop")
     return True
+
+
+def _curves(before, after, k: float) -> list[tuple[np.ndarray, dict]]:
+    """Measured, model before and model after, scaled by ``k``, with their styles."""
+    return [
+        (before.measured * k, dict(ls="", marker=".", ms=1.5, color="k", label="measured")),
+        (before.predicted * k, dict(ls="", marker=".", ms=1, color="0.5", label="model before")),
+        (after.predicted * k, dict(ls="", marker=".", ms=1, color="C1", label="model after")),
+    ]
+
+
+def _zoom(ax, x: np.ndarray, series, sel: np.ndarray, what: str) -> None:
+    """An inset of ``ax`` enlarging the samples ``sel``, where the effect lives."""
+    if int(np.sum(sel)) < 10:
+        return
+    inset = ax.inset_axes([0.04, 0.45, 0.42, 0.5])
+    for y, style in series:
+        inset.plot(x[sel], y[sel], **style)
+    ys = np.concatenate([y[sel] for y, _ in series])
+    pad = 0.05 * max(float(np.ptp(ys)), 1e-12)
+    inset.set_ylim(float(np.min(ys)) - pad, float(np.max(ys)) + pad)
+    inset.set_title(f"zoom: the {what}", fontsize=7)
+    inset.tick_params(labelsize=6)
+    ax.indicate_inset_zoom(inset, edgecolor="0.4")
 
 
 def _mu_view(ax, tr, before, after, against: str) -> bool:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from .figures import PHASE_COLOURS, legend_with_phases, shade_phases
 from .least_squares import FitResult
 from .metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
 from .outputs import atomic_write
@@ -42,12 +43,6 @@ CHANNEL_LABELS = {
 SCALE = {"x_m": 1e3}  # shown in mm
 #: Units shown on the page instead of the SI ones: SI unit -> (shown unit, factor).
 SHOWN_UNITS = {"m": ("mm", 1e3), "m/deg": ("µm/deg", 1e6), "m/deg^2": ("nm/deg²", 1e9)}
-PHASE_COLOURS = {
-    "gapping": "#f0f0f0",
-    "clamping": "#fde8c8",
-    "saturation": "#d8ecd8",
-    "release": "#d8e4f4",
-}
 
 
 def _subplots(*args, figsize=None, layout=None, **kwargs):
@@ -71,14 +66,6 @@ def _phases(trace: Trace) -> np.ndarray:
     return phase_labels(trace)
 
 
-def _shade(ax, t: np.ndarray, phases: np.ndarray) -> None:
-    start = 0
-    for k in range(1, len(t) + 1):
-        if k == len(t) or phases[k] != phases[start]:
-            ax.axvspan(t[start], t[min(k, len(t) - 1)], color=PHASE_COLOURS[phases[start]], lw=0)
-            start = k
-
-
 def figure_overview(trace: Trace) -> bytes:
     """Every recorded channel against time."""
     cols = [c for c in CHANNEL_LABELS if trace.has(c)]
@@ -93,8 +80,14 @@ def figure_overview(trace: Trace) -> bytes:
     return _png(fig)
 
 
-def figure_fit(trace: Trace, predictions: Mapping[str, np.ndarray], title: str) -> bytes:
-    """Measured against simulated per channel, residuals below, phases shaded."""
+def figure_fit(
+    trace: Trace,
+    predictions: Mapping[str, np.ndarray],
+    title: str,
+    bands: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
+) -> bytes:
+    """Measured against simulated per channel, residuals below, phases shaded; with
+    ``bands`` (channel -> lower, upper), the 90 % posterior-predictive band shaded."""
     cols = [c for c in CHANNEL_LABELS if c in predictions]
     phases = _phases(trace)
     fig, axes = _subplots(
@@ -109,15 +102,23 @@ def figure_fit(trace: Trace, predictions: Mapping[str, np.ndarray], title: str) 
     for j, c in enumerate(cols):
         s = SCALE.get(c, 1.0)
         top, bottom = axes[2 * j], axes[2 * j + 1]
-        _shade(top, t, phases)
+        shade_phases(top, t, phases)
         top.plot(t, trace[c] * s, lw=0.8, color="k", label="measured")
         top.plot(t, predictions[c] * s, lw=1.0, color="tab:red", label="simulated")
         top.set_ylabel(CHANNEL_LABELS[c], fontsize=8)
-        bottom.plot(t, (trace[c] - predictions[c]) * s, lw=0.6, color="tab:blue")
+        if bands and c in bands:  # where the residual should lie if the model is right
+            lo, hi = (b - predictions[c] for b in bands[c])
+            bottom.fill_between(
+                t, lo * s, hi * s, color="tab:red", alpha=0.2, lw=0,
+                label="90 % posterior predictive",
+            )  # fmt: skip
+        bottom.plot(t, (trace[c] - predictions[c]) * s, lw=0.6, color="tab:blue", label="residual")
         bottom.axhline(0, color="k", lw=0.5)
         bottom.set_ylabel("residual", fontsize=8)
-    axes[0].legend(fontsize=7, loc="upper right")
-    axes[-1].set_xlabel("time (s)  (shading: gapping / clamping / saturation / release)")
+    legend_with_phases(axes[0], loc="lower left", bbox_to_anchor=(0.0, 1.02))
+    if bands:
+        axes[1].legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("time (s)")
     fig.suptitle(_short(title, 90), fontsize=10)
     return _png(fig)
 
@@ -395,7 +396,10 @@ def build_report(
     for k, t in enumerate(traces):
         key = f"fit_{k}_{_slug(t.name)}.png"
         figures[key] = figure_fit(
-            t, fit.predictions[k], f"{t.name}: measured vs simulated ({fit.stage})"
+            t,
+            fit.predictions[k],
+            f"{t.name}: measured vs simulated ({fit.stage})",
+            _predictive_bands(posterior, t),
         )
         parts.append(_img(key, figures[key], f"measured against simulated, {t.name}"))
         cols = ("noise", *PHASE_COLOURS)
@@ -426,6 +430,23 @@ def build_report(
         f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
     )
     return page, figures
+
+
+def _predictive_bands(posterior: Any, trace: Trace) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Channel -> 5 % and 95 % quantiles of the posterior's replicated data for one trace
+    (none without a posterior)."""
+    if posterior is None:
+        return {}
+    pr = posterior.predictive
+    y = np.asarray(pr["y_rep"], float)
+    y = y.reshape(-1, y.shape[-1])
+    out = {}
+    for ch in set(pr["obs_channel"]):
+        mask = (pr["obs_trace"] == trace.name) & (pr["obs_channel"] == ch)
+        if int(mask.sum()) == trace.n:
+            lo, hi = np.quantile(y[:, mask], [0.05, 0.95], axis=0)
+            out[str(ch)] = (lo, hi)
+    return out
 
 
 def _summary(fit: FitResult, posterior: Any, ddoc: Any, cpost: Any) -> str:

@@ -4,6 +4,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ewb_ident.least_squares import fit
@@ -42,7 +43,7 @@ def test_report_holds_every_section_and_the_seed_values(report):
     # x is shown in mm, as its heading says (not metres in e-notation)
     trace = read_trace(DATA / "staircase_200hz.csv")
     rmse_mm = fit(trace).metrics["x_m"]["rmse"] * 1e3
-    assert f"piston gap x (mm)</td><td class=\"\">{rmse_mm:.4g}<" in page
+    assert f'piston gap x (mm)</td><td class="">{rmse_mm:.4g}<' in page
     assert {"bell.png", "fit_0_staircase_200hz.png", "overview_0_staircase_200hz.png"} <= set(
         figures
     )
@@ -158,3 +159,10 @@ def test_report_renders_the_posterior_section():
     page, figures = build_report([trace], result, posterior=post)
     assert "5. Posterior (MCMC)" in page and "pair.png" in figures
     assert "posterior mean" in page and "90 % interval" in page
+    # the measured-vs-simulated figure's band: 90 % posterior predictive of the force,
+    # which holds about 90 % of the measured samples when the model is right
+    from ewb_ident.validation_report import _predictive_bands
+
+    lo, hi = _predictive_bands(post, trace)["force_N"]
+    inside = float(np.mean((trace["force_N"] >= lo) & (trace["force_N"] <= hi)))
+    assert 0.8 < inside < 0.97, inside
