@@ -106,6 +106,8 @@ FIELDS = (
     "residual_ratio",
     "seconds",
     "error",
+    "channels",
+    "r_eff_m",
 )
 
 
@@ -158,9 +160,20 @@ def case_plan() -> list[tuple[str, tuple[str, ...]]]:
     return [plan[k] for k in order]
 
 
-def make_case(i: int, ids: tuple[str, ...], seed: int = SEED):
+#: Pad radii of the widened cases, m.
+R_EFF_CHOICES = (0.10, 0.12, 0.15, 0.20, 0.25)
+#: Share of the widened cases recorded without a current sensor.
+NO_CURRENT_SHARE = 0.5
+
+
+def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = False):
     """The trace of case ``i`` with effects ``ids``, its truth and the effect's
-    visibility (``seed``: the study's; other studies draw other cases)."""
+    visibility (``seed``: the study's; other studies draw other cases).
+
+    ``widen`` varies what real rigs vary besides: the pad radius (:data:`R_EFF_CHOICES`)
+    and the current sensor (absent in :data:`NO_CURRENT_SHARE` of the cases), drawn from
+    a stream of their own so every other draw of case ``i`` is unchanged.
+    """
     import dataclasses
 
     from ewb_ident import rig
@@ -168,6 +181,11 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED):
     rng = np.random.default_rng([seed, i])
     params = rig.vary(rig.RigParams(), rng, rel=0.05)
     params = dataclasses.replace(params, disc_speed_end_rad_s=float(rng.uniform(20.0, 50.0)))
+    no_current = False
+    if widen:
+        rng_w = np.random.default_rng([seed, i, 2])
+        no_current = bool(rng_w.uniform() < NO_CURRENT_SHARE)
+        params = dataclasses.replace(params, r_eff_m=float(rng_w.choice(R_EFF_CHOICES)))
     profile = str(rng.choice(["steps", "position", "staircase"]))
     rate = float(rng.choice([100.0, 200.0, 500.0, 1000.0]))
     factor = _log_uniform(rng, 0.5, 2.0)
@@ -194,6 +212,11 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED):
             for ch in chans
         )
     setting = {"profile": profile, "sample_rate_hz": rate, "noise_factor": factor}
+    if widen:
+        if no_current:
+            chans = {c: v for c, v in trace.channels.items() if c != "current_A"}
+            trace = dataclasses.replace(trace, channels=chans)
+        setting |= {"channels": "no current" if no_current else "all", "r_eff_m": params.r_eff_m}
     return trace, effects, setting, visibility
 
 
@@ -210,11 +233,13 @@ def _channels(effect) -> tuple[str, ...]:
 # ----------------------------------------------------------------------------- one case
 
 
-def run_case(i: int, kind: str, ids: tuple[str, ...]) -> dict[str, Any]:
+def run_case(
+    i: int, kind: str, ids: tuple[str, ...], seed: int = SEED, widen: bool = False
+) -> dict[str, Any]:
     """Diagnose case ``i`` and score it against its truth."""
     from ewb_ident.diagnose import diagnose
 
-    trace, effects, setting, visibility = make_case(i, ids)
+    trace, effects, setting, visibility = make_case(i, ids, seed=seed, widen=widen)
     row: dict[str, Any] = {
         "case": i,
         "kind": kind,
@@ -300,7 +325,7 @@ def _listing(title: str, items: list[str], sep: str = "; ") -> list[str]:
     return ["", f"{title}: {sep.join(items)}."] if items else []
 
 
-def summarise(rows: list[dict[str, str]]) -> str:
+def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False) -> str:
     """The Markdown report of the study from its case table."""
     import pandas as pd
 
@@ -343,8 +368,13 @@ def summarise(rows: list[dict[str, str]]) -> str:
         "shard). How the cases are "
         "drawn is in the script's docstring: rig units varied by 5 %, steps/position/"
         "staircase profiles, 100 Hz to 1 kHz, noise 0.5x to 2x, effect sizes about 0.5x "
-        "to 2x of a typical size; seed "
-        f"{SEED}, none of them used to set a threshold.",
+        "to 2x of a typical size"
+        + (
+            "; widened: pad radius 0.10-0.25 m and no current sensor in about half the cases"
+            if widen
+            else ""
+        )
+        + f"; seed {seed}, none of them used to set a threshold.",
         "",
         "| measure | result | target |",
         "|---|---|---|",
@@ -367,6 +397,32 @@ def summarise(rows: list[dict[str, str]]) -> str:
     n_err = len(df) - len(ok)
     if n_err:
         lines += [f"{n_err} case(s) failed with an error (listed in `cases.csv`).", ""]
+
+    if "channels" in df and df["channels"].fillna("").ne("").any():
+        lines += [
+            "By channel subset:",
+            "",
+            "| channels | top-1, single effects | false alarms | two-effect, both named |",
+            "|---|---|---|---|",
+        ]
+        for sub in sorted(set(ok["channels"].fillna(""))):
+            si, cl, pa = (x[x["channels"] == sub] for x in (single, clean, pair))
+            lines.append(
+                f"| {sub or '?'} | {pct(int((si['top1'] == si['truth']).sum()), len(si))} | "
+                f"{pct(int((cl['verdict'] != 'none').sum()), len(cl))} | "
+                f"{pct(int(named[pa.index].sum()), len(pa))} |"
+            )
+        lines += ["", "Top-1 per catalog id (target >= 80 % each):", ""]
+        lines += ["| effect | top-1 | with current | without current |", "|---|---|---|---|"]
+        for t in IDS:
+            sel = single[single["truth"] == t]
+            parts = [sel] + [sel[sel["channels"] == c] for c in ("all", "no current")]
+            lines.append(
+                f"| {t} | "
+                + " | ".join(pct(int((x["top1"] == t).sum()), len(x)) for x in parts)
+                + " |"
+            )
+        lines.append("")
 
     # Top-1 among the concealed ones, and by visibility.
     sc = single[single["concealed"]]
@@ -439,7 +495,14 @@ def summarise(rows: list[dict[str, str]]) -> str:
 # ----------------------------------------------------------------------------- entry points
 
 
-def run(out_dir: Path, progress=None, shard: tuple[int, int] = (0, 1), cases: int | None = None):
+def run(
+    out_dir: Path,
+    progress=None,
+    shard: tuple[int, int] = (0, 1),
+    cases: int | None = None,
+    seed: int = SEED,
+    widen: bool = False,
+):
     """Run the study (resuming from ``out_dir/cases.csv``); returns (table, Markdown)."""
     import jax
     import pandas as pd
@@ -454,7 +517,7 @@ def run(out_dir: Path, progress=None, shard: tuple[int, int] = (0, 1), cases: in
     todo = [(i, k, ids) for i, (k, ids) in plan if i % shard[1] == shard[0]]
     for n, (i, kind, ids) in enumerate(todo):
         if i not in done:
-            _append(path, run_case(i, kind, ids))
+            _append(path, run_case(i, kind, ids, seed=seed, widen=widen))
             # Every case compiles its own mechanism models (shapes and mechanisms differ):
             # drop them, or a long run exhausts the process's memory maps.
             jax.clear_caches()
@@ -462,7 +525,7 @@ def run(out_dir: Path, progress=None, shard: tuple[int, int] = (0, 1), cases: in
         if progress:
             progress(n + 1, len(todo))
     rows = _all_rows(out_dir)
-    text = summarise(rows)
+    text = summarise(rows, seed=seed, widen=widen)
     write_text(out_dir / "README.md", text)
     return pd.DataFrame(rows), text
 
@@ -473,9 +536,13 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--seed", type=int, default=SEED, help="draw other cases")
+    ap.add_argument(
+        "--widen", action="store_true", help="vary the pad radius and drop current in ~half"
+    )
     args = ap.parse_args()
     if args.report_only:
-        text = summarise(_all_rows(args.out))
+        text = summarise(_all_rows(args.out), seed=args.seed, widen=args.widen)
         write_text(args.out / "README.md", text)
         print(text)
         return
@@ -484,7 +551,10 @@ def main() -> None:
     def progress(done: int, total: int) -> None:
         print(f"{done}/{total}", flush=True)
 
-    _, text = run(args.out, progress=progress, shard=(k, n), cases=args.cases)
+    _, text = run(
+        args.out, progress=progress, shard=(k, n), cases=args.cases, seed=args.seed,
+        widen=args.widen,
+    )  # fmt: skip
     print(text)
 
 

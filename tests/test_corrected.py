@@ -23,6 +23,8 @@ CASES = [
     ("friction_speed", "friction_speed"),
     ("friction_fade", "friction_fade"),
     ("current_limit", "current_limit"),
+    ("sensor_delay", "sensor_delay[torque_Nm]"),
+    ("sensor_offset", "sensor_offset[force_N]"),
 ]
 
 
