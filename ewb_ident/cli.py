@@ -666,7 +666,7 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
     mechs = diag.corrected_mechanisms()
     typer.echo(f"sampling the posterior of the corrected model ({', '.join(mechs)}) ...")
     try:
-        return sample_corrected(trs[0], mechs, seed=seed), None
+        return sample_corrected(trs[0], mechs, corrected=diag.corrected, seed=seed), None
     except (DiagnoseError, SampleError) as err:
         typer.echo(f"no corrected posterior: {err}")
         return None, f"its posterior could not be run ({err})"

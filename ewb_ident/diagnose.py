@@ -247,6 +247,10 @@ class DiagnosisResult:
         Phase of each sample.
     timings
         Seconds spent per step.
+    corrected
+        The whole chain fitted with the catalog findings on (``None`` when nothing in
+        the catalog was found or a generic correction is among them): where the
+        corrected model's posterior starts.
     """
 
     trace_name: str
@@ -272,6 +276,7 @@ class DiagnosisResult:
     baseline_stderr: dict[str, float | None] = field(default_factory=dict)
     augmented_params: dict[str, float] = field(default_factory=dict)
     augmented_stderr: dict[str, float | None] = field(default_factory=dict)
+    corrected: CorrectedFit | None = field(default=None, repr=False)
 
     def corrected_mechanisms(self) -> list[str]:
         """The catalog mechanism variants found: what ``fit --with-diagnosis`` and the
@@ -1033,7 +1038,42 @@ def diagnose(
         trace=trace,
         timings=timings,
         notes=tuple(notes),
+        corrected=_corrected_of(trace, chain_fits, chain_data, chain_sigma)
+        if chain_ok and len(chain_fits) > 1
+        else None,
         **_model_tables(chain_fits, chain_ok),
+    )
+
+
+def _corrected_of(trace: Trace, chain_fits, data, sigma) -> CorrectedFit | None:
+    """The diagnosis's corrected whole chain as a :class:`CorrectedFit` (catalog
+    mechanisms only: a generic correction has no physical parameters to sample)."""
+    catalog = {m.variant for m in variants()}
+    f0, f1 = chain_fits[0], chain_fits[-1]
+    if not f1.mechanisms or any(m.variant not in catalog for m in f1.mechanisms):
+        return None
+    notes = () if f1.converged else ("the corrected whole-chain fit did not converge",)
+    return _corrected_record(trace, f0, f1, data, _evidence(f1, f0, sigma), notes)
+
+
+def _corrected_record(trace: Trace, f0, f1, data, ev, notes) -> CorrectedFit:
+    """A :class:`CorrectedFit` from the baseline ``f0`` and corrected ``f1`` chain fits."""
+    tables = _model_tables([f0, f1], True)
+    return CorrectedFit(
+        trace_name=trace.name,
+        mechanisms=tuple(m.variant for m in f1.mechanisms),
+        params=tables["augmented_params"],
+        stderr=tables["augmented_stderr"],
+        metrics=_chain_metrics(trace, f1),
+        baseline_params=tables["baseline_params"],
+        baseline_stderr=tables["baseline_stderr"],
+        baseline_metrics=_chain_metrics(trace, f0),
+        converged=bool(f1.converged),
+        delta_bic=float(ev["delta_bic"]),
+        warnings=tuple(notes),
+        predictions={k: np.asarray(v) for k, v in f1.predictions.items()},
+        fit=f1,
+        data=data,
     )
 
 
@@ -1397,20 +1437,4 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
             f"the mechanisms do not improve the whole chain (dBIC {ev['delta_bic']:.1f} > "
             f"-{BIC_THRESHOLD:g}): this trace gives no evidence for them"
         )
-    tables = _model_tables([f0, f1], True)
-    return CorrectedFit(
-        trace_name=trace.name,
-        mechanisms=tuple(m.variant for m in templates),
-        params=tables["augmented_params"],
-        stderr=tables["augmented_stderr"],
-        metrics=_chain_metrics(trace, f1),
-        baseline_params=tables["baseline_params"],
-        baseline_stderr=tables["baseline_stderr"],
-        baseline_metrics=_chain_metrics(trace, f0),
-        converged=bool(f1.converged),
-        delta_bic=float(ev["delta_bic"]),
-        warnings=tuple(notes),
-        predictions={k: np.asarray(v) for k, v in f1.predictions.items()},
-        fit=f1,
-        data=data,
-    )
+    return _corrected_record(trace, f0, f1, data, ev, notes)

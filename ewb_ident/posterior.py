@@ -760,8 +760,9 @@ def _sample(
 
 def sample_corrected(
     trace: Trace,
-    mechanisms: Sequence[str],
+    mechanisms: Sequence[str] = (),
     *,
+    corrected: Any | None = None,
     priors: str | Path | Mapping[str, Any] | None = None,
     noise_model: str = "auto",
     n_walkers: int | None = None,
@@ -789,6 +790,10 @@ def sample_corrected(
         One trace with ``voltage_V`` and ``theta_deg``.
     mechanisms
         Catalog ids or variants, e.g. ``["backlash", "sensor_delay[force_N]"]``.
+    corrected
+        A corrected fit of ``trace`` to start from instead of fitting one (e.g. the
+        diagnosis's, :attr:`ewb_ident.diagnose.DiagnosisResult.corrected`); then
+        ``mechanisms`` is not needed.
     priors, noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob,
     max_draws, seed, progress
         As for :func:`sample`.
@@ -812,7 +817,12 @@ def sample_corrected(
     prior_table = load_priors(priors)
     with jax.enable_x64(True):
         t_start = time.perf_counter()
-        cf = fit_corrected(trace, mechanisms)
+        if corrected is not None:
+            cf = corrected
+        elif mechanisms:
+            cf = fit_corrected(trace, mechanisms)
+        else:
+            raise SampleError("name at least one catalog mechanism, or give a corrected fit")
         start = _corrected_start(trace, cf)
         table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
         t_fit = time.perf_counter()

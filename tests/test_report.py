@@ -114,7 +114,8 @@ def test_report_with_a_finding_shows_both_models_and_the_banner(hysteresis):
 
     path, trace, result, diagnosis = hysteresis
     assert diagnosis.corrected_mechanisms() == ["force_hysteresis"]
-    cpost = sample_corrected(trace, diagnosis.corrected_mechanisms(), n_steps=800, seed=2)
+    assert diagnosis.corrected.mechanisms == ("force_hysteresis",)  # the posterior's start
+    cpost = sample_corrected(trace, corrected=diagnosis.corrected, n_steps=800, seed=2)
     page, _ = build_report([trace], result, diagnosis=diagnosis, corrected_posterior=cpost)
     assert "rejects the baseline model" in page and "2b. Corrected model" in page
     assert "force_hysteresis.h" in page and "corrected 90 %" in page
