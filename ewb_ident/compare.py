@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .least_squares import FitResult, fit
+from .least_squares import FitResult, fit, motor_combination_values
 from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 from .simulate import simulate_chain
 from .traces import Trace
@@ -38,6 +38,17 @@ OPERATING_POINT = {"v_apply_V": 4.0, "t_apply_s": 0.25, "t_read_s": 1.0, "rate_h
 DEFAULT_TOLERANCE = 0.01
 
 CHANGED = 0.95
+
+#: Without ``current_A`` the motor's ``L``, ``kb`` and ``M`` are fitted as effective
+#: values with ``R`` and ``v`` held (:func:`ewb_ident.least_squares.default_free`): what
+#: the recordings identify, and what a change is reported for, are these combinations.
+MOTOR_COMBINATIONS: dict[str, str] = {
+    "motor_gain_rad_per_V_s": "rad/(V*s)",
+    "motor_lag_s": "s",
+}
+#: Motor parameters that are only effective values without a current sensor.
+EFFECTIVE_WITHOUT_CURRENT = ("L", "kb", "M")
+_MOTOR = ("R", "L", "kb", "kT", "M", "v")
 
 
 def _phi(z: float) -> float:
@@ -83,7 +94,7 @@ class Comparison:
             lines.append("No parameter changed beyond its tolerance with probability > 0.95.")
         for c in self.changes:
             rel = f" ({100 * c.delta / c.old:+.1f} %)" if c.old else ""
-            unit = PARAMS[c.name].unit
+            unit = PARAMS[c.name].unit if c.name in PARAMS else MOTOR_COMBINATIONS[c.name]
             word = "changed" if c.changed else "no clear change"
             interval = (
                 f"90 % interval [{c.low90:+.4g}, {c.high90:+.4g}]"
@@ -94,6 +105,12 @@ class Comparison:
             lines.append(
                 f"{c.name}: {word}, {c.delta:+.4g} {unit}{rel}, {interval}; "
                 f"P(|change| > {c.tolerance:.3g}) = {p}"
+            )
+        if any(c.name in MOTOR_COMBINATIONS for c in self.changes):
+            lines.append(
+                "Without current_A the motor's L, kb and M are effective values (R and v "
+                "held): its change is given for what voltage and angle identify, the gain "
+                "(no-load speed per volt) and the lag."
             )
         dT = self.torque_new - self.torque_old
         se = f" +- {self.torque_delta_stderr:.3g}" if self.torque_delta_stderr else ""
@@ -194,8 +211,10 @@ def compare(
     go, gn = _torque_gradient(xo, names, base), _torque_gradient(xn, names, base)
     var_T = float(go @ cov_o @ go + gn @ cov_n @ gn)
     T_o, T_n = float(_torque(xo, names, base)), float(_torque(xn, names, base))
+    motor = _motor_changes(fo, fn, tolerance) if not _has_current([*old, *new]) else None
     if len(old) != 1 or len(new) != 1:
-        return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+        changes = _with_motor(screened, motor)
+        return Comparison(fo, fn, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None)
 
     # Joint refit: screened parameters per trace, the rest shared. The bell's a, b, c and
     # F_rt trade off strongly (when the piston never passes c, almost exactly), so they
@@ -205,7 +224,8 @@ def compare(
     moving = [c.name for c in screened if c.changed or c.name in STAGE_PARAMS["force"]]
     joint = fit([old[0], new[0]], stage=stage, free=fo.free, per_trace=[*moving, "theta0_deg"])
     if not joint.converged:
-        return Comparison(fo, fn, tuple(screened), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+        changes = _with_motor(screened, motor)
+        return Comparison(fo, fn, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None)
     jn = list(joint.corr_names)
     se = np.array([joint.stderr[n] or 0.0 for n in jn])
     cov = joint.corr * np.outer(se, se)
@@ -230,26 +250,70 @@ def compare(
         float(_torque(np.array([p.as_dict()[n] for n in names]), names, base)) for p in joint.params
     )
     var_T = float(np.asarray(dT) @ cov_u @ np.asarray(dT))
-    return Comparison(joint, joint, tuple(refined), T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+    changes = _with_motor(refined, motor)
+    return Comparison(joint, joint, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+
+
+def _has_current(traces: Sequence[Trace]) -> bool:
+    return all(t.has("current_A") for t in traces)
+
+
+def _with_motor(changes, motor) -> tuple[ParameterChange, ...]:
+    """``changes`` with the effective motor parameters replaced by ``motor`` (when the
+    recordings have no current)."""
+    if motor is None:
+        return tuple(changes)
+    kept = [c for c in changes if c.name not in EFFECTIVE_WITHOUT_CURRENT]
+    return (*kept, *motor)
+
+
+def _motor_changes(fo: FitResult, fn: FitResult, tolerance) -> list[ParameterChange]:
+    """Changes of the identified motor combinations, from the two separate fits, with
+    standard errors by the delta method through each fit's covariance."""
+    out_o, out_n, var = {}, {}, {}
+    for res, out in ((fo, out_o), (fn, out_n)):
+        free = [n for n in _MOTOR if n in res.corr_names and res.stderr.get(n)]
+        x = jnp.asarray([res.values[n] for n in free])
+
+        def combos(x, res=res, free=free):
+            vals = {n: res.values[n] for n in _MOTOR} | dict(zip(free, x, strict=True))
+            got = motor_combination_values(**vals)
+            return jnp.stack([got[k] for k in MOTOR_COMBINATIONS])
+
+        out |= dict(zip(MOTOR_COMBINATIONS, np.asarray(combos(x)).tolist(), strict=True))
+        if free:
+            J = np.asarray(jax.jacfwd(combos)(x))
+            cov = _covariance(res, free)
+            for k, name in enumerate(MOTOR_COMBINATIONS):
+                var[name] = var.get(name, 0.0) + float(J[k] @ cov @ J[k])
+    return [
+        _change(name, out_o[name], out_n[name], var.get(name, 0.0), tolerance)
+        for name in MOTOR_COMBINATIONS
+    ]
 
 
 def _changes(names, old, new, variances, tolerance) -> list[ParameterChange]:
-    out = []
-    for name, var in zip(names, variances, strict=True):
-        d = new[name] - old[name]
-        se = math.sqrt(var) if var > 0 else None
-        info = PARAMS[name]
-        tol = (tolerance or {}).get(name)
-        if tol is None:
-            floor = info.scale if info.transform == "affine" else 0.0
-            tol = DEFAULT_TOLERANCE * max(abs(old[name]), floor)
-        if se:
-            p = _phi((d - tol) / se) + _phi((-d - tol) / se)
-            lo, hi = d - 1.645 * se, d + 1.645 * se
-        else:
-            p, lo, hi = None, None, None
-        out.append(ParameterChange(name, old[name], new[name], d, se, lo, hi, tol, p))
-    return out
+    return [
+        _change(name, old[name], new[name], var, tolerance)
+        for name, var in zip(names, variances, strict=True)
+    ]
+
+
+def _change(name: str, old: float, new: float, var: float, tolerance) -> ParameterChange:
+    """One change, its 90 % interval and ``P(|delta| > tol)``."""
+    d = new - old
+    se = math.sqrt(var) if var > 0 else None
+    tol = (tolerance or {}).get(name)
+    if tol is None:
+        info = PARAMS.get(name)
+        floor = info.scale if info is not None and info.transform == "affine" else 0.0
+        tol = DEFAULT_TOLERANCE * max(abs(old), floor)
+    if se:
+        p = _phi((d - tol) / se) + _phi((-d - tol) / se)
+        lo, hi = d - 1.645 * se, d + 1.645 * se
+    else:
+        p, lo, hi = None, None, None
+    return ParameterChange(name, old, new, d, se, lo, hi, tol, p)
 
 
 def _sd_u(result: FitResult, name: str) -> float:

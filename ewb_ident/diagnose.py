@@ -451,6 +451,8 @@ class _Session:
         tr = self.trace
         vals = EWBParams().as_dict()
         vals["theta0_deg"] = float(np.median(tr["theta_deg"][:5])) if tr.has("theta_deg") else 0.0
+        #: The start angle as recorded (a motor refit's second start).
+        self.theta0_measured = vals["theta0_deg"]
         self.free: dict[str, tuple[str, ...]] = {}
         self.base_messages: list[str] = []
         for s in self.stages:
@@ -573,8 +575,14 @@ class _Session:
                 # A baseline motor fitted without the missing physics has compensated for
                 # it (and a closed-loop trace lets such errors grow without bound): also
                 # start from the nominal motor.
-                nominal = EWBParams().as_dict()
-                alt.append({n: nominal[n] for n in free if n in nominal and n in MOTOR_PARAMS})
+                nominal = EWBParams().as_dict() | {"theta0_deg": self.theta0_measured}
+                alt.append(
+                    {
+                        n: nominal[n]
+                        for n in free
+                        if n in nominal and n in (*MOTOR_PARAMS, "theta0_deg")
+                    }
+                )
             self.cache[key] = fit_mechanisms(
                 self.data,
                 stages,
@@ -992,7 +1000,8 @@ def diagnose(
             se = _stderr_of(mech, fit_m, ses)
             ev = evidence[mech.variant] | _prefixed(chain_ev.get(mech.variant))
             alts = tuple(alternatives.get(mech.variant, ()))
-            findings.append(_finding(ses, mech, se, ev, flagged_cells, before, after, alts))
+            ctx = _refitted_ctx(ses, fit_m)
+            findings.append(_finding(ses, mech, se, ev, flagged_cells, before, after, alts, ctx))
 
     notes = list(ses.base_messages) + notes_explain
     for m, ev in unconfirmed:
@@ -1181,7 +1190,20 @@ def _metric_words(ch: str, before, after) -> str:
     return f"{name} NRMSE {b:.2f} % → {a:.2f} %"
 
 
-def _finding(ses, mech, se, ev, flagged, before, after, alternatives=()) -> Finding:
+def _refitted_ctx(ses, fit_m: AugFit | None) -> dict[str, Any]:
+    """The session's facts, with the motor's stall torque from the fit that holds the
+    finding (the baseline motor may have bent to absorb the missing physics)."""
+    ctx = dict(ses.ctx)
+    if fit_m is None or not ses.trace.has("voltage_V"):
+        return ctx
+    kT, R = fit_m.values.get("kT", 0.0), fit_m.values.get("R", 0.0)
+    if R > 0 and "R" in fit_m.stderr:
+        ctx["stall_torque_Nm"] = kT * float(np.max(np.abs(ses.trace["voltage_V"]))) / R
+    return ctx
+
+
+def _finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx=None) -> Finding:
+    ctx = ses.ctx if ctx is None else ctx
     vals = mech.values()
     stages = ses.mechanism_stages(mech)
     phases = _phases_of(mech.stage, flagged, stages)
@@ -1189,7 +1211,7 @@ def _finding(ses, mech, se, ev, flagged, before, after, alternatives=()) -> Find
     ch = mech.channels[0] if mech.hook == "sensor" else MAIN_CHANNEL[mech.stage]
     words = _metric_words(ch, before, after)
     text = (
-        f"{mech.observation(vals, ses.ctx)} ({where}): {mech.describe(vals, se, ses.ctx)}"
+        f"{mech.observation(vals, ctx)} ({where}): {mech.describe(vals, se, ctx)}"
         + (f"; {words}" if words else "")
         + f", ΔBIC {ev['delta_bic']:.0f}"
     )

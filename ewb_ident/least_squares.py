@@ -394,7 +394,13 @@ def motor_combinations(p: EWBParams) -> dict[str, float]:
     ``motor_lag2_s2``: ``c2 = L M / D``, weakly determined by the angle alone;
     ``motor_time_constant_s``: ``M R / D``; ``electrical_time_constant_s``: ``L / R``.
     """
-    R, L, kb, kT, M, v = (float(getattr(p, n)) for n in ("R", "L", "kb", "kT", "M", "v"))
+    values = {n: float(getattr(p, n)) for n in ("R", "L", "kb", "kT", "M", "v")}
+    return {k: float(v) for k, v in motor_combination_values(**values).items()}
+
+
+def motor_combination_values(R, L, kb, kT, M, v) -> dict[str, Any]:
+    """:func:`motor_combinations` of explicit motor parameters (SI; floats or JAX
+    arrays, so it can be differentiated)."""
     damping = R * v + kT * kb
     return {
         "motor_gain_rad_per_V_s": kT / damping,

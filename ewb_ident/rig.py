@@ -364,26 +364,36 @@ class Backlash(RigEffect):
 
 @dataclass(frozen=True)
 class WedgeLoadTorque(RigEffect):
-    """Clamping force reacting on the motor: ``tau = k_w F tanh(omega_w / omega0)``.
+    """Clamping force reacting on the motor:
+    ``tau = k_w F tanh(omega_w / omega0) + k_r F``.
 
-    ``omega_w`` is the wedge-side speed (the pinion speed unless the pinion is inside a
-    backlash dead band). The torque opposes motion in both directions.
+    Two forms of the same physics, alone or together: a self-locking worm gear
+    (``k_w``: a friction-like torque that opposes motion in both directions and holds the
+    actuator when it stops) and a wedge that is not self-locking (``k_r``: a reaction
+    torque of one direction that drives the pinion back toward release, so holding the
+    force takes current). ``omega_w`` is the wedge-side speed (the pinion speed unless the
+    pinion is inside a backlash dead band).
 
     Parameters
     ----------
     k_w
-        Load torque per clamping force, N m/N.
+        Friction-like load torque per clamping force, N m/N (>= 0).
     omega0_rad_s
         Speed scale of the direction switch, rad/s.
+    k_r
+        Reaction torque per clamping force, N m/N; positive drives the pinion toward
+        release.
     """
 
     id: ClassVar[str] = "wedge_load_torque"
     k_w: float = 3e-5
     omega0_rad_s: float = 0.5
+    k_r: float = 0.0
 
     def __post_init__(self) -> None:
         _check_nonnegative("WedgeLoadTorque", k_w=self.k_w)
         _check_positive("WedgeLoadTorque", omega0_rad_s=self.omega0_rad_s)
+        _check_finite("WedgeLoadTorque", k_r=self.k_r)
 
 
 @dataclass(frozen=True)
@@ -866,6 +876,7 @@ def _compiled(st: _Static):
         tau_ext = p["kT"] * i
         if st.wedge_load:
             tau_ext = tau_ext - p["k_w"] * o["force"] * jnp.tanh(o["ww"] / p["omega0"])
+            tau_ext = tau_ext - p["k_r"] * o["force"]
         if st.stiction:
             stick = jnp.clip(tau_ext + p["M"] * w / STICK_RELAX_S, -p["tau_s"], p["tau_s"])
             tau_f = jnp.where(jnp.abs(w) < p["band"], stick, p["tau_c"] * jnp.sign(w))
@@ -1186,7 +1197,7 @@ def simulate_rig(
         )
     if WedgeLoadTorque.id in eff:
         e = eff[WedgeLoadTorque.id]
-        p.update(k_w=e.k_w, omega0=e.omega0_rad_s)
+        p.update(k_w=e.k_w, omega0=e.omega0_rad_s, k_r=e.k_r)
     if ForceHysteresis.id in eff:
         e = eff[ForceHysteresis.id]
         p.update(hyst_h=e.h, delta=e.delta_m)

@@ -72,3 +72,34 @@ def test_intervals_of_a_change_hold_the_true_change():
             true = getattr(new, name) - getattr(base, name)
             held[name] += by[name].low90 <= true <= by[name].high90
     assert all(v >= 0.75 * n for v in held.values()), held
+
+
+def test_without_current_the_motor_change_is_given_for_what_is_identified():
+    """A warm motor (R +15 %) recorded without current on the independent rig: L, kb and
+    M are effective values there (R held), so their 'changes' would be R's in disguise.
+    The comparison gives the gain and lag instead, and their intervals hold the truth."""
+    import numpy as np
+    from other_rig import draw_rig, record
+
+    from ewb_ident.least_squares import motor_combination_values
+
+    rng = np.random.default_rng([5, 1])
+    old = draw_rig(rng)
+    new = dataclasses.replace(old, R=old.R * 1.15, c=old.c + 40e-6)
+    kw = dict(profile="steps", rate_hz=200.0, drop=("current_A",))
+    t_old, _ = record(old, seed=1, name="old", **kw)
+    t_new, _ = record(new, seed=2, name="new", **kw)
+    result = compare([t_old], [t_new])
+    by = {c.name: c for c in result.changes}
+    assert not {"L", "kb", "M"} & set(by)
+    motor = ("R", "L", "kb", "kT", "M", "v")
+    for name in ("motor_gain_rad_per_V_s", "motor_lag_s"):
+        true = (
+            motor_combination_values(**{n: getattr(new, n) for n in motor})[name]
+            - motor_combination_values(**{n: getattr(old, n) for n in motor})[name]
+        )
+        assert by[name].low90 <= true <= by[name].high90, (name, true, by[name])
+    assert by["motor_lag_s"].changed  # a warm motor lags more (M R / D grows with R)
+    assert "effective values" in result.summary()
+    doc = result.to_json()
+    assert doc["changes"]["motor_lag_s"]["stderr"] > 0

@@ -98,6 +98,28 @@ def test_concealed_effect_is_named_first_and_its_parameter_recovered(effect):
         assert res.stage_metrics_after[top.stage][ch]["rmse"] <= m["rmse"] * 1.001
 
 
+def test_wedge_reaction_form_is_named_in_a_closed_loop_trace():
+    """The other form of the wedge's load torque: a wedge that is not self-locking pushes
+    back toward release (k_r), and the position controller holds the force with current.
+    Force and torque look clean; the motor stage misses by hundreds of times its noise
+    (the baseline motor bends to absorb it). Its motor-stage rivals compete."""
+    trace, _ = rig.simulate_rig(
+        P,
+        effects=[rig.WedgeLoadTorque(k_w=0.0, k_r=1e-5)],
+        name="wedge_reaction",
+        profile="position",
+        seed=7,
+        sample_rate_hz=200.0,
+        duration_s=3.0,
+    )
+    res = diagnose(trace, catalog=["wedge_load_torque", "stiction", "current_limit"])
+    assert res.verdict == "found", res.summary()
+    top = res.findings[0]
+    assert top.effect == "wedge_load_torque"
+    assert top.params["k_r"] == pytest.approx(1e-5, rel=0.05)
+    assert "back toward release" in top.explanation
+
+
 def test_friction_speed_slope_is_recovered():
     trace, res = case("friction_speed")
     top = res.findings[0]

@@ -201,10 +201,15 @@ def test_friction_fade_follows_the_dissipated_energy():
     ("rig_effect", "mechanism", "tol_deg"),
     [
         (rig.WedgeLoadTorque(k_w=3e-5, omega0_rad_s=0.05), WedgeLoadTorque(k_w=3e-5), 1.0),
+        (
+            rig.WedgeLoadTorque(k_w=0.0, k_r=1e-5),
+            WedgeLoadTorque(k_w=1e-8, k_r=1e-5),
+            0.2,
+        ),
         (rig.CurrentLimit(i_max_A=2.0), CurrentLimit(i_max_A=2.0), 1.0),
         (rig.Stiction(tau_c_Nm=0.02, tau_s_Nm=0.02), Stiction(tau_c_Nm=0.02), 1.0),
     ],
-    ids=["wedge_load_torque", "current_limit", "stiction"],
+    ids=["wedge_load_torque", "wedge_reaction", "current_limit", "stiction"],
 )
 def test_motor_mechanisms_reproduce_the_rig_motor(rig_effect, mechanism, tol_deg):
     _, run = clean(sample_rate_hz=500.0, effects=[rig_effect], fine_step_s=2e-5)

@@ -321,6 +321,24 @@ def test_wedge_load_torque_slows_the_motor_as_force_builds():
     np.testing.assert_allclose(th1[apply][low], th0[apply][low], atol=0.5)
 
 
+def test_wedge_reaction_takes_holding_current_in_closed_loop_and_opens_an_idle_brake():
+    # A wedge that is not self-locking (k_r) pushes the pinion back toward release: the
+    # position controller holds the force with current, and at 0 V the brake opens.
+    k_r = 1e-5
+    _, plain = clean_run(profile="position")
+    _, held = clean_run(profile="position", effects=[WedgeLoadTorque(k_w=0.0, k_r=k_r)])
+    hold = plain.states["force_N"] > 0.95 * np.max(plain.states["force_N"])
+    i_hold = float(np.median(held.states["current_A"][hold]))
+    expected = k_r * float(np.median(held.states["force_N"][hold])) / P.kT
+    assert i_hold == pytest.approx(expected, rel=0.15)
+    assert abs(float(np.median(plain.states["current_A"][hold]))) < 0.1 * expected
+    _, idle = clean_run(effects=[WedgeLoadTorque(k_w=0.0, k_r=k_r)])  # steps: 0 V hold
+    _, locked = clean_run(effects=[WedgeLoadTorque(k_w=3e-5)])
+    f_locked = locked.states["force_N"]
+    holding = f_locked > 0.95 * np.max(f_locked)
+    assert np.median(idle.states["force_N"][holding]) < 0.5 * np.median(f_locked[holding])
+
+
 def test_force_hysteresis_higher_on_apply_than_on_release():
     h = 0.03
     _, clean = clean_run(profile="position", effects=[ForceHysteresis(h=h)])

@@ -95,6 +95,9 @@ class AbstractMechanism(eqx.Module):
     id: ClassVar[str] = ""
     STAGE: ClassVar[str] = ""
     hook: ClassVar[Hook] = "sensor"
+    #: Further hooks the mechanism overrides besides :attr:`hook` (e.g. a friction-like
+    #: torque and a signed load torque together).
+    EXTRA_HOOKS: ClassVar[tuple[Hook, ...]] = ()
     #: What physics the seed model leaves out, in a brake engineer's words.
     physics: ClassVar[str] = ""
     #: Parameters that locate the model (e.g. where in the play the trace starts) but
@@ -104,6 +107,11 @@ class AbstractMechanism(eqx.Module):
     NEEDS: ClassVar[tuple[str, ...]] = ()
 
     # ------------------------------------------------------------------ declarations
+
+    @classmethod
+    def uses(cls, hook: str) -> bool:
+        """Whether the mechanism acts through ``hook``."""
+        return hook == cls.hook or hook in cls.EXTRA_HOOKS
 
     def param_info(self) -> tuple[ParamInfo, ...]:
         """The parameters, in the order of the unconstrained vector."""

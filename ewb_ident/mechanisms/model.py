@@ -56,7 +56,7 @@ STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
 
 def n_substeps(dt: float, mechanisms: Sequence[AbstractMechanism]) -> int:
     """Motor sub-steps per sample interval ``dt`` (s) for these mechanisms."""
-    if not any(m.hook in MOTOR_HOOKS for m in mechanisms):
+    if not any(m.uses(h) for m in mechanisms for h in MOTOR_HOOKS):
         return 1
     return max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
 
@@ -73,15 +73,16 @@ def motor_states(
 
     Without motor mechanisms this is :func:`ewb_ident.simulate._motor_states` (exact).
     """
-    volt = [m for m in mechanisms if m.hook == "voltage"]
-    fric = [m for m in mechanisms if m.hook == "motor_friction"]
-    load = [m for m in mechanisms if m.hook == "load_torque"]
+    volt = [m for m in mechanisms if m.uses("voltage")]
+    fric = [m for m in mechanisms if m.uses("motor_friction")]
+    load = [m for m in mechanisms if m.uses("load_torque")]
     if not volt and not fric and not load:
         return _motor_states(p, voltage_V, dt, theta0_deg, 1, "exponential", None)
-    A, B_V, _ = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
+    A, B_V, B_tau = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
     h = dt / n_sub
     E, P1, _ = phi_matrices(A, h)
     g = _mv(P1, B_V)
+    g_tau = _mv(P1, B_tau)  # exact response to a load torque held over the sub-step
     s0 = jnp.zeros(3, dtype=A.dtype).at[2].set(theta0_deg / DEG_PER_RAD)
 
     def force_of(theta_rad):
@@ -94,8 +95,16 @@ def motor_states(
             v_eff = m.voltage(v_eff, s, p)
         s1 = _mv(E, s) + g * v_eff
         if load:
-            tau = sum(m.load_torque(s, p, force_of(s[2])) for m in load)
-            s1 = s1.at[1].add(-h * tau / p.M).at[2].add(-0.5 * h * h * tau / p.M)
+            # The load torque as an input held over the sub-step (exact for a constant
+            # one), trapezoidal in its value: at the start, then the mean with its value
+            # where that leads (Heun).
+            def loaded(tau):
+                return s1 + g_tau * tau
+
+            tau0 = sum(m.load_torque(s, p, force_of(s[2])) for m in load)
+            ahead = loaded(tau0)
+            tau1 = sum(m.load_torque(ahead, p, force_of(ahead[2])) for m in load)
+            s1 = loaded(0.5 * (tau0 + tau1))
         if fric:
             force = force_of(s1[2])
             terms = [m.motor_friction(s1, p, force) for m in fric]
