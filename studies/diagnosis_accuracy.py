@@ -108,6 +108,7 @@ FIELDS = (
     "error",
     "channels",
     "r_eff_m",
+    "form",
 )
 
 
@@ -118,7 +119,7 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
 
-def _effect(rng: np.random.Generator, eid: str):
+def _effect(rng: np.random.Generator, eid: str, form: str = "self_locking"):
     from ewb_ident import rig
 
     name, lo, hi = RANGES[eid]
@@ -126,7 +127,8 @@ def _effect(rng: np.random.Generator, eid: str):
     if eid == "backlash":
         return rig.Backlash(beta_deg=m)
     if eid == "wedge_load_torque":
-        return rig.WedgeLoadTorque(k_w=m)
+        k_w, k_r = WEDGE_FORMS[form]
+        return rig.WedgeLoadTorque(k_w=k_w * m, k_r=k_r * m)
     if eid == "force_hysteresis":
         return rig.ForceHysteresis(h=m)
     if eid == "sensor_delay":
@@ -164,6 +166,14 @@ def case_plan() -> list[tuple[str, tuple[str, ...]]]:
 R_EFF_CHOICES = (0.10, 0.12, 0.15, 0.20, 0.25)
 #: Share of the widened cases recorded without a current sensor.
 NO_CURRENT_SHARE = 0.5
+#: Forms of the wedge's load torque in the widened cases: (k_w, k_r) per unit of the
+#: drawn size. A self-locking worm gear (friction-like, opposing motion), a wedge that is
+#: not self-locking (a reaction toward release), and both.
+WEDGE_FORMS: dict[str, tuple[float, float]] = {
+    "self_locking": (1.0, 0.0),
+    "reaction": (0.0, 1.0 / 3.0),
+    "both": (0.5, 1.0 / 3.0),
+}
 
 
 def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = False):
@@ -181,11 +191,12 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = Fals
     rng = np.random.default_rng([seed, i])
     params = rig.vary(rig.RigParams(), rng, rel=0.05)
     params = dataclasses.replace(params, disc_speed_end_rad_s=float(rng.uniform(20.0, 50.0)))
-    no_current = False
+    no_current, form = False, "self_locking"
     if widen:
         rng_w = np.random.default_rng([seed, i, 2])
         no_current = bool(rng_w.uniform() < NO_CURRENT_SHARE)
         params = dataclasses.replace(params, r_eff_m=float(rng_w.choice(R_EFF_CHOICES)))
+        form = str(rng_w.choice(list(WEDGE_FORMS)))
     profile = str(rng.choice(["steps", "position", "staircase"]))
     rate = float(rng.choice([100.0, 200.0, 500.0, 1000.0]))
     factor = _log_uniform(rng, 0.5, 2.0)
@@ -197,7 +208,7 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = Fals
     options: dict[str, Any] = {}
     if profile == "steps":
         options["v_apply_V"] = float(rng.uniform(3.5, 5.0))
-    effects = [_effect(rng, eid) for eid in ids]
+    effects = [_effect(rng, eid, form) for eid in ids]
     kw = dict(profile=profile, sample_rate_hz=rate, duration_s=3.0, noise=noise, **options)
     trace, truth, run = rig.simulate_rig(
         params, effects=effects, seed=i, name=f"case{i}", return_clean=True, **kw
@@ -217,6 +228,7 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = Fals
             chans = {c: v for c, v in trace.channels.items() if c != "current_A"}
             trace = dataclasses.replace(trace, channels=chans)
         setting |= {"channels": "no current" if no_current else "all", "r_eff_m": params.r_eff_m}
+        setting["form"] = form if "wedge_load_torque" in ids else ""
     return trace, effects, setting, visibility
 
 
@@ -422,6 +434,14 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
                 + " | ".join(pct(int((x["top1"] == t).sum()), len(x)) for x in parts)
                 + " |"
             )
+        lines.append("")
+    if "form" in df and df["form"].fillna("").ne("").any():
+        lines += ["Top-1 on single wedge_load_torque cases per form:", ""]
+        lines += ["| form | top-1 |", "|---|---|"]
+        wedge = single[single["truth"] == "wedge_load_torque"]
+        for f in WEDGE_FORMS:
+            sel = wedge[wedge["form"] == f]
+            lines.append(f"| {f} | {pct(int((sel['top1'] == sel['truth']).sum()), len(sel))} |")
         lines.append("")
 
     # Top-1 among the concealed ones, and by visibility.
