@@ -29,7 +29,7 @@ from ewb_ident.mechanisms import (
     variants,
 )
 from ewb_ident.mechanisms.base import fmt_pm
-from ewb_ident.mechanisms.correction import forward_select
+from ewb_ident.mechanisms.correction import GenericCorrection, forward_select
 from ewb_ident.mechanisms.fitting import fit_mechanisms, make_data
 from ewb_ident.mechanisms.model import motor_states, predict
 from ewb_ident.mechanisms.stiction import STICK_SPEED_RAD_S
@@ -222,6 +222,24 @@ def test_motor_mechanisms_reproduce_the_rig_motor(rig_effect, mechanism, tol_deg
     err = np.max(np.abs(theta - run.states["theta_deg"]))
     assert effect > 10 * tol_deg  # the effect is large ...
     assert err < tol_deg  # ... and the mechanism reproduces it
+
+
+def test_a_motor_load_torque_enters_the_integration_exactly():
+    """The generic motor correction acts through the load-torque hook: a viscous term
+    c * omega / 30 rad/s is extra damping, so the motor must match the plain motor with
+    v + c / 30 (the load is an input held over each sub-step, trapezoidal in its value)."""
+    extra = 1e-3  # N m s/rad
+    corr = GenericCorrection(stage_name="motor", features=("viscous",), coef=(extra * 30.0,))
+    assert corr.uses("load_torque") and not corr.uses("output")
+    volts = jnp.asarray(np.where(np.arange(400) < 100, 4.0, 0.0))
+    with_load = motor_states(BASE, volts, 0.005, 0.0, (corr,), 10)
+    damped = BASE.replace(v=BASE.v + extra)
+    exact = motor_states(damped, volts, 0.005, 0.0, (), 1)
+    plain = motor_states(BASE, volts, 0.005, 0.0, (), 1)
+    theta = (np.asarray(x[:, 2]) * 180 / math.pi for x in (with_load, exact, plain))
+    th_load, th_exact, th_plain = theta
+    assert np.max(np.abs(th_exact - th_plain)) > 20.0  # the damping matters ...
+    assert np.max(np.abs(th_load - th_exact)) < 0.05  # ... and the load path reproduces it
 
 
 def test_stiction_holds_the_actuator_still():

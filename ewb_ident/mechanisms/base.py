@@ -108,10 +108,10 @@ class AbstractMechanism(eqx.Module):
 
     # ------------------------------------------------------------------ declarations
 
-    @classmethod
-    def uses(cls, hook: str) -> bool:
-        """Whether the mechanism acts through ``hook``."""
-        return hook == cls.hook or hook in cls.EXTRA_HOOKS
+    def uses(self, hook: str) -> bool:
+        """Whether the mechanism acts through ``hook`` (an instance's: a generic
+        correction's hook depends on its stage)."""
+        return hook == self.hook or hook in self.EXTRA_HOOKS
 
     def param_info(self) -> tuple[ParamInfo, ...]:
         """The parameters, in the order of the unconstrained vector."""

@@ -195,7 +195,7 @@ def predict(
     stage = stages
     meas = d["meas"]
     ctx = _context(d)
-    sensors = [m for m in mechanisms if m.hook == "sensor"]
+    sensors = [m for m in mechanisms if m.uses("sensor")]
 
     def read(ch, y):
         for m in sensors:
@@ -219,7 +219,7 @@ def predict(
         theta = unread("theta_deg", meas["theta_deg"])
 
     if stage in ("gap", "chain"):
-        wedge = [m for m in mechanisms if m.hook == "wedge_angle"]
+        wedge = [m for m in mechanisms if m.uses("wedge_angle")]
         theta_w = theta
         if wedge and stage == "gap" and "theta_deg" in d.get("drive", {}):
             # A measured angle drives the play: use it averaged where it stands still.
@@ -236,7 +236,7 @@ def predict(
         x = unread("x_m", meas["x_m"])
         x_drive = x
 
-    force_mechs = [m for m in mechanisms if m.hook == "clamp_force"]
+    force_mechs = [m for m in mechanisms if m.uses("clamp_force")]
     if stage in ("force", "chain"):
         if stage == "force" and force_mechs:
             drive = d.get("drive", {})
@@ -257,7 +257,7 @@ def predict(
     else:  # torque stage
         F = unread("force_N", meas["force_N"])
 
-    mu_mechs = [m for m in mechanisms if m.hook == "friction_coefficient"]
+    mu_mechs = [m for m in mechanisms if m.uses("friction_coefficient")]
     factor = 1.0
     for m in mu_mechs:
         if not getattr(m, "USES_ENERGY", False):
@@ -283,6 +283,6 @@ def predict(
 def _correct(stage: str, y, mechanisms, signals) -> jnp.ndarray:
     """Add the ``output`` corrections of ``stage`` (generic corrections) to ``y``."""
     for m in mechanisms:
-        if m.hook == "output" and m.stage == stage:
+        if m.uses("output") and m.stage == stage:
             y = y + m.correction(signals | {"y": y, "scales": signals.get("scales", {})})
     return y
