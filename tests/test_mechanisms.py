@@ -242,6 +242,20 @@ def test_a_motor_load_torque_enters_the_integration_exactly():
     assert np.max(np.abs(th_load - th_exact)) < 0.05  # ... and the load path reproduces it
 
 
+def test_wedge_load_torque_of_one_form_leaves_the_other_absent_not_implausible():
+    m = WedgeLoadTorque()
+    # A reaction-only trace (fresh widened case 23) drove k_w's log coordinate far below
+    # its bound; that is "no friction form", and the reaction form stands on its own.
+    reaction = {"k_w": 1e-63, "omega0_rad_s": 5.8e-29, "k_r": 1.9e-5}
+    assert m.plausible(reaction, {"k_w": None, "omega0_rad_s": None, "k_r": 1e-7}) == ""
+    friction = {"k_w": 3e-5, "omega0_rad_s": 0.5, "k_r": -5e-8}
+    assert m.plausible(friction, {"k_w": 1e-7, "omega0_rad_s": 0.1, "k_r": 2e-8}) == ""
+    neither = m.plausible(reaction | {"k_r": 1e-8}, {"k_w": None, "k_r": 1e-7})
+    assert neither.startswith("neither part is resolved")
+    too_big = m.plausible(friction | {"k_r": 2e-3}, {"k_w": 1e-7, "k_r": 1e-5})
+    assert "outside the plausible range" in too_big
+
+
 def test_stiction_holds_the_actuator_still():
     # 0.1 V gives a 0.1 A stall current: 0.01 N m of motor torque, under tau_c = 0.02 N m.
     # The friction switches smoothly over STICK_SPEED_RAD_S (so the fit has gradients):

@@ -95,20 +95,26 @@ class WedgeLoadTorque(AbstractMechanism):
         return friction + reaction
 
     def plausible(self, values, stderr) -> str:
-        """Both parts within their bounds and at least one resolved (a trace of one form
-        leaves the other at no effect)."""
+        """Neither part too large, and at least one resolved. A part at no effect is
+        absent, not implausible: a trace of one form drives the other to zero (``k_w``
+        below its lower bound, where its log coordinate has run off)."""
         unresolved = []
         for info in _INFO:
             if info.name in self.NUISANCE:
                 continue
             v, se = float(values[info.name]), stderr.get(info.name)
-            if not info.lower < v < info.upper:
+            if abs(v) >= info.upper:
                 return (
                     f"{info.name} = {v:.3g} {info.unit} is outside the plausible range "
                     f"({info.lower:.3g}, {info.upper:.3g}) {info.unit}"
                 )
-            if se is None or not np.isfinite(se) or abs(v) < RESOLVED_Z * se:
-                shown = "no standard error" if se is None else f"{v:.3g} ± {se:.2g} {info.unit}"
+            absent = info.transform == "log" and v <= info.lower
+            if absent or se is None or not np.isfinite(se) or abs(v) < RESOLVED_Z * se:
+                shown = (
+                    "no standard error"
+                    if se is None or absent
+                    else f"{v:.3g} ± {se:.2g} {info.unit}"
+                )
                 unresolved.append(f"{info.name} ({shown})")
         if len(unresolved) == 2:
             return "neither part is resolved: " + ", ".join(unresolved)
