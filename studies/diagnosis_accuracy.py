@@ -382,7 +382,9 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
         "staircase profiles, 100 Hz to 1 kHz, noise 0.5x to 2x, effect sizes about 0.5x "
         "to 2x of a typical size"
         + (
-            "; widened: pad radius 0.10-0.25 m and no current sensor in about half the cases"
+            f" (widened: `--widen --seed {seed}`, pad radius 0.10-0.25 m, no current sensor "
+            "in about half the cases, the wedge's load torque self-locking, a reaction "
+            "toward release, or both)"
             if widen
             else ""
         )
