@@ -480,7 +480,7 @@ class _Session:
         kT, R = vals["kT"], vals["R"]
         self.ctx |= {"kT": kT, "R": R}
         if tr.has("voltage_V") and R > 0:
-            self.ctx["stall_torque_Nm"] = kT * float(np.max(np.abs(tr["voltage_V"]))) / R
+            self.ctx["stall_torque_Nm"] = _stall_torque(tr, kT, R)
         self.sigma_tf = self._stage_sigma(vals)
         # The displacement that drives a hysteresis state: averaged over about 10 ms,
         # then through a play twice as wide as the averaged noise (sensor noise must not
@@ -1198,8 +1198,13 @@ def _refitted_ctx(ses, fit_m: AugFit | None) -> dict[str, Any]:
         return ctx
     kT, R = fit_m.values.get("kT", 0.0), fit_m.values.get("R", 0.0)
     if R > 0 and "R" in fit_m.stderr:
-        ctx["stall_torque_Nm"] = kT * float(np.max(np.abs(ses.trace["voltage_V"]))) / R
+        ctx["stall_torque_Nm"] = _stall_torque(ses.trace, kT, R)
     return ctx
+
+
+def _stall_torque(trace: Trace, kT: float, R: float) -> float:
+    """The motor's stall torque at the trace's largest voltage, N*m."""
+    return kT * float(np.max(np.abs(trace["voltage_V"]))) / R
 
 
 def _finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx=None) -> Finding:
