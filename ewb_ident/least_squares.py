@@ -771,39 +771,84 @@ def fit(
     st |= dict(start or {})
     # No null direction reaches the solver: at the start, a combination of free
     # parameters the data cannot see (scaled Jacobian numerically singular) has its
-    # dominant parameter held at its start value, and the fit says so.
-    held_notes = []
-    for _ in range(len(setup.free)):
-        problem = setup.problem
-        u0 = _to_u(problem, st, setup.base, setup.tdata)
-        sigma = setup.sensor_sigma()
-        data = setup.data(sigma)
-        J0 = np.asarray(_evaluate(problem, u0, data)[2])
-        found = _null_direction(J0, problem.shared)
-        if found is None:
+    # dominant parameter held at its start value, and the fit says so. A solve that
+    # still ran out of steps is checked the same way at the point it reached (the
+    # solver wandering along a valley floor the start did not show, e.g. a current
+    # channel too small against its noise to separate R, kb and M); the parameter is
+    # then held at its start value and the fit solved again from the start.
+    held: dict[str, float] = {}
+    held_notes: list[str] = []
+    while True:
+        setup, u0, data, sigma = _hold_null_directions(
+            setup, st, per_trace, dict(fixed or {}), held, held_notes, integrator
+        )
+        sol, sigma, data, results, steps = _solve_twice(
+            setup, u0, data, sigma, rtol, atol, max_steps
+        )
+        if _is(results[-1], optx.RESULTS.successful) or len(setup.problem.shared) < 2:
             break
-        name, partners, cond = found
-        value = float(st.get(name, getattr(setup.base, name)))
-        if not _usable(name, value):
-            value = float(getattr(setup.base, name))
-        held_notes.append(
-            f"the data cannot tell {', '.join(partners)} apart (condition number {cond:.2g} "
-            f"at the start): {name} is held at {value:.4g} {PARAMS[name].unit}"
-        )
-        setup = _setup(
-            setup.traces,
-            stage,
-            [n for n in setup.free if n != name],
-            per_trace,
-            dict(fixed or {}) | {name: value},
-            integrator,
-        )
+        if not _hold_one(setup, sol.value, data, st, held, held_notes, "where the solver stopped"):
+            break
     if held_notes:
         setup = dataclasses.replace(setup, notes=setup.notes + tuple(held_notes))
-    problem = setup.problem
+    return _finish(setup, sol.value, data, sigma, results, steps, max_steps)
 
-    # Solve, re-estimate the noise levels from the residuals, solve again; a solve that
-    # ran out of steps while still descending gets one more allowance.
+
+def _hold_one(setup, u, data, st, held, notes, where: str) -> bool:
+    """If the scaled Jacobian at ``u`` has a null direction, hold its dominant parameter
+    at its start value (or the base one, if that is unusable), adding it to ``held``
+    and the words to ``notes``; whether one was held."""
+    J = np.asarray(_evaluate(setup.problem, u, data)[2])
+    found = _null_direction(J, setup.problem.shared)
+    if found is None:
+        return False
+    name, partners, cond = found
+    value = float(st.get(name, getattr(setup.base, name)))
+    info = PARAMS[name]
+    if not (_usable(name, value) and (info.transform == "affine" or info.inside(value))):
+        value = float(getattr(setup.base, name))
+    held[name] = value
+    notes.append(
+        f"the data cannot tell {', '.join(partners)} apart (condition number {cond:.2g} "
+        f"{where}): {name} is held at {value:.4g} {info.unit}"
+    )
+    return True
+
+
+def _hold_null_directions(setup, st, per_trace, fixed, held, notes, integrator):
+    """Hold, one at a time, the dominant parameter of each null direction of the scaled
+    Jacobian at the start (adding to ``held`` and ``notes``); the final set-up, start
+    vector, data and first weights."""
+    if held:
+        setup = _setup(
+            setup.traces,
+            setup.stage,
+            [n for n in setup.free if n not in held],
+            per_trace,
+            fixed | held,
+            integrator,
+        )
+    for _ in range(len(setup.free) + 1):
+        u0 = _to_u(setup.problem, st, setup.base, setup.tdata)
+        sigma = setup.sensor_sigma()
+        data = setup.data(sigma)
+        if not _hold_one(setup, u0, data, st, held, notes, "at the start"):
+            break
+        setup = _setup(
+            setup.traces,
+            setup.stage,
+            [n for n in setup.free if n not in held],
+            per_trace,
+            fixed | held,
+            integrator,
+        )
+    return setup, u0, data, sigma
+
+
+def _solve_twice(setup, u0, data, sigma, rtol, atol, max_steps):
+    """Solve, re-estimate the noise levels from the residuals, solve again; a solve that
+    ran out of steps while still descending gets one more allowance."""
+    problem = setup.problem
     sol = _solve(problem, u0, data, rtol, atol, max_steps)
     results, steps = [sol.result], int(sol.stats["num_steps"])
     r = np.asarray(_evaluate(problem, sol.value, data)[0])
@@ -817,7 +862,7 @@ def fit(
             sol = _solve(problem, sol.value, data, rtol, atol, max_steps)
             results[-1] = sol.result
             steps += int(sol.stats["num_steps"])
-    return _finish(setup, sol.value, data, sigma, results, steps, max_steps)
+    return sol, sigma, data, results, steps
 
 
 def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResult:

@@ -17,6 +17,10 @@ The sensor-noise estimate :func:`noise_sigma` uses second differences, which can
 smooth signal and leave the white sensor noise: for white noise of standard deviation
 sigma, ``y[k+1] - 2 y[k] + y[k-1]`` has standard deviation ``sqrt(6) sigma``. A robust
 scale (1.4826 * MAD) ignores the few samples where the signal itself bends sharply.
+A quantised channel (an ADC, a potentiometer read at 12 bits) whose white noise is
+smaller than its step has mostly zero second differences, so the MAD says "no noise";
+its noise is then at least the rounding error, ``q / sqrt(12)`` for a step ``q``
+(:func:`quantisation_step`).
 """
 
 from __future__ import annotations
@@ -76,9 +80,30 @@ def noise_sigma(y: ArrayLike) -> float:
     -------
     Estimated noise standard deviation, in the channel's unit (0 for a noise-free one).
     """
-    d2 = np.diff(np.asarray(y, float), n=2)
+    y = np.asarray(y, float)
+    d2 = np.diff(y, n=2)
     mad = np.median(np.abs(d2 - np.median(d2)))
-    return float(1.4826 * mad / np.sqrt(6.0))
+    return float(max(1.4826 * mad / np.sqrt(6.0), quantisation_step(y) / np.sqrt(12.0)))
+
+
+def quantisation_step(y: ArrayLike) -> float:
+    """The step of a channel recorded on a uniform grid (an ADC's least significant
+    bit), in its unit; 0 when the values are not on one.
+
+    The candidate step is the smallest change between consecutive samples; the channel
+    is quantised when at least 99 % of all changes are whole multiples of it (to 1 % of
+    the step) and there are at least 20 changes.
+    """
+    y = np.asarray(y, float)
+    d = np.abs(np.diff(y))
+    span = float(np.max(y) - np.min(y)) if y.size else 0.0
+    d = d[d > 1e-9 * max(span, 1e-300)]
+    if d.size < 20:
+        return 0.0
+    q = float(np.min(d))
+    k = d / q
+    on_grid = np.abs(k - np.round(k)) < 0.01
+    return q if np.mean(on_grid) >= 0.99 else 0.0
 
 
 def sensor_noise(y: ArrayLike) -> float:

@@ -70,3 +70,23 @@ def test_whole_chain_fit_converges_on_another_rig(subset, profile, rate, seed):
         assert se is not None and abs(v[name] - getattr(rig, name)) < 4 * se + 1e-3 * abs(
             getattr(rig, name)
         ), (name, v[name], getattr(rig, name), se)
+
+
+def test_a_coarsely_quantised_angle_is_weighted_by_its_rounding_error():
+    """A 1 kHz trace whose angle sensor's step (0.9 deg) is far above its white noise
+    (0.05 deg): consecutive samples mostly repeat, second differences are mostly zero,
+    and a noise estimate from them alone says "no noise" and weights the angle ~1e4x too
+    heavily, which bent the motor fit (R, kb held, theta 2 deg off; seen on the third
+    rig's chirp traces). The noise is at least the rounding error, q / sqrt(12)."""
+    seed = 4711
+    rig = draw_rig(np.random.default_rng(seed))
+    sensors = Sensors(theta_deg=0.05, q_theta_deg=0.9)
+    trace, _ = record(rig, profile="position", rate_hz=1000.0, seed=seed, sensors=sensors)
+    motor = fit(trace, stage="motor")
+    assert motor.status == "ok", motor.warnings
+    assert motor.noise[0]["theta_deg"] == pytest.approx(0.9 / math.sqrt(12.0), rel=0.1)
+    assert not any("cannot tell" in w for w in motor.warnings), motor.warnings
+    for name in ("R", "kb"):
+        assert abs(motor.values[name] / getattr(rig, name) - 1) < 0.05, name
+    # the angle is fitted to its rounding error, not to a fraction of a degree's bias
+    assert motor.metrics["theta_deg"]["rmse"] < 1.2 * math.hypot(0.05, 0.9 / math.sqrt(12.0))

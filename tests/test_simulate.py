@@ -130,3 +130,20 @@ def test_chain_gradient_is_finite_at_the_bell_centre():
         jnp.asarray(c), jnp.asarray(a), jnp.asarray(2.82), jnp.asarray(c)
     )
     assert all(np.isfinite(float(d)) for d in grads)
+
+
+def test_noise_of_a_quantised_channel_is_at_least_its_rounding_error():
+    from ewb_ident.metrics import noise_sigma, quantisation_step
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 3.0, 3000)
+    y = 100.0 * np.sin(t) + rng.normal(0.0, 0.05, t.size)
+    q = 0.87890625  # 12 bits over 3600 deg
+    yq = q * np.round(y / q)
+    assert quantisation_step(yq) == pytest.approx(q)
+    assert quantisation_step(y) == 0.0
+    true_sd = float(np.std(yq - 100.0 * np.sin(t)))
+    assert noise_sigma(yq) == pytest.approx(true_sd, rel=0.1)
+    # a step below the white noise changes nothing
+    F = np.round(3000.0 * np.sin(t) ** 2 + rng.normal(0.0, 7.0, t.size))
+    assert noise_sigma(F) == pytest.approx(7.0, rel=0.1)
