@@ -427,6 +427,8 @@ class _Session:
     def _facts(self) -> dict[str, Any]:
         tr = self.trace
         ctx: dict[str, Any] = {"dt": tr.dt}
+        if tr.has("voltage_V"):
+            ctx["voltage_noise_V"] = noise_sigma(tr["voltage_V"])
         if tr.has("force_N"):
             ctx["force_max_N"] = float(np.max(tr["force_N"]))
         if tr.has("current_A"):

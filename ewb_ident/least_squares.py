@@ -1024,7 +1024,9 @@ def _judge(setup: _Setup, params, trace_metrics, pooled) -> tuple[bool, list[str
                 f"{ch}: percent error {pe:.1f} % is outside the seed paper's acceptance "
                 f"({SEED_ACCEPTANCE_PCT:g} %): the fitted model does not reproduce this trace"
             )
-    for t, nz, tm in zip(setup.traces, setup.noise, trace_metrics, strict=True):
+    for t, nz, tm, p in zip(setup.traces, setup.noise, trace_metrics, params, strict=True):
+        if setup.stage in ("motor", "chain"):
+            notes += _input_noise_note(t, p, tm, nz)
         for ch, m in tm.items():
             if m["rmse"] is None:
                 acceptable = False
@@ -1039,6 +1041,44 @@ def _judge(setup: _Setup, params, trace_metrics, pooled) -> tuple[bool, list[str
                     "something out here (ewb-ident diagnose locates it)"
                 )
     return acceptable, notes
+
+
+#: A drift from the logged voltage's noise this large against the angle's excess misfit
+#: is named as a possible cause of the misfit.
+INPUT_NOISE_SHARE = 0.5
+
+
+def _input_noise_note(trace: Trace, p: EWBParams, tm: Mapping, nz: Mapping) -> list[str]:
+    """Words when the angle's misfit could be the logged voltage's own noise.
+
+    The model is driven by the logged voltage. If that column carries measurement noise
+    the motor never saw (a logger reading the driver's output, not its command), a
+    simulation integrates it: the angle drifts as a random walk of step ``K sigma_V dt``
+    (``K`` the motor's no-load speed per volt), whose RMS about its mean over ``n``
+    samples is ``K sigma_V dt sqrt(n / 6)``. When that explains at least
+    :data:`INPUT_NOISE_SHARE` of the angle's excess over its noise, the fit says so: the
+    misfit may be the logger's, not missing physics.
+    """
+    m = tm.get("theta_deg")
+    if not (trace.has("voltage_V") and m and m["rmse"] is not None):
+        return []
+    floor = max(nz.get("theta_deg", 0.0), noise_floor(trace["theta_deg"]))
+    excess = float(np.sqrt(max(m["rmse"] ** 2 - floor**2, 0.0)))
+    if m["rmse"] < 2.0 * floor:
+        return []
+    sigma_v = noise_sigma(trace["voltage_V"])
+    gain_deg = abs(motor_combinations(p)["motor_gain_rad_per_V_s"]) * 180.0 / np.pi
+    drift = gain_deg * sigma_v * trace.dt * np.sqrt(trace.n / 6.0)
+    if not drift >= INPUT_NOISE_SHARE * excess:
+        return []
+    return [
+        f"{trace.name}: the logged voltage carries white noise of about {sigma_v:.3g} V; if "
+        f"that is the logger's and not the driver's, a simulation from it drifts by about "
+        f"{drift:.2g} deg over the trace, which would account for the angle's misfit "
+        f"({m['rmse']:.2g} deg against its noise {floor:.2g} deg): the mismatch may be the "
+        "input's noise, not missing physics. A teacher-forced stage fit (--stage force) "
+        "does not integrate the voltage and checks a, b, c"
+    ]
 
 
 def _message(results, r, max_steps) -> str:

@@ -17,8 +17,14 @@ fit: every run draws fresh cases from ``--seed``.
 A case succeeds when the fit converged with status ``ok``, the force (or, without force,
 the torque) is fitted within 1.5x its true sensor noise (white noise and quantisation),
 mu is within 3 % where force and torque are recorded, and — when the piston passes c —
-a, b, c are within 4 standard errors (+0.1 %) of the truth. When it does not pass c, the
-fit must say that a, b, c trade off.
+a, b, c are within 4 standard errors (+0.1 %) of the truth.
+
+In about 20 % of cases the rig adds white noise to the *logged* voltage only (the motor
+never saw it). The model is driven by that column, so its simulated angle drifts as a
+random walk and no fit can reach the sensor noise: for those cases success is status
+``ok``, a, b, c within 3 % of the truth and mu within 3 %, and the fit's words must name
+the voltage's noise as a possible cause when the angle misses its noise by 2x or more.
+They are tabulated separately.
 """
 
 from __future__ import annotations
@@ -64,13 +70,24 @@ def run_case(path: Path, truth: dict) -> dict:
         "rate_hz": truth["rate"],
         "missing": " ".join(c for c in chans if c not in truth["channels"]) or "-",
         "passes_c": bool(truth["passes_c"]),
+        "voltage_noise": float(truth.get("voltage_log_noise_V") or 0.0) > 0,
         "status": res.status,
         "seconds": round(elapsed, 2),
     }
     ok = res.status == "ok"
     ch = "force_N" if trace.has("force_N") else "torque_Nm"
     row["rmse_over_noise"] = res.metrics[ch]["rmse"] / _floor(truth, ch)
-    ok &= row["rmse_over_noise"] < 1.5
+    vnoise = row["voltage_noise"]
+    th = res.metrics["theta_deg"]["rmse"] / _floor(truth, "theta_deg")
+    row["theta_over_noise"] = th
+    if vnoise:
+        for name in ("a", "b", "c"):
+            ok &= abs(v[name] / truth[name] - 1) < 0.03
+        if th >= 2.0:
+            row["names_input_noise"] = any("logged voltage" in w for w in res.warnings)
+            ok &= row["names_input_noise"]
+    else:
+        ok &= row["rmse_over_noise"] < 1.5
     if trace.has("torque_Nm") and trace.has("force_N"):
         row["mu_rel_err"] = v["mu"] / truth["mu"] - 1
         ok &= abs(row["mu_rel_err"]) < 0.03
@@ -78,7 +95,7 @@ def run_case(path: Path, truth: dict) -> dict:
         se = res.stderr.get(name)
         row[f"{name}_rel_err"] = v[name] / truth[name] - 1
         row[f"{name}_z"] = (v[name] - truth[name]) / se if se else None
-        if truth["passes_c"]:
+        if truth["passes_c"] and not vnoise:
             ok &= se is not None and abs(v[name] - truth[name]) < 4 * se + 1e-3 * abs(truth[name])
     if not truth["passes_c"]:
         row["says_trade_off"] = any("trade off" in w for w in res.warnings)
@@ -128,7 +145,8 @@ def main() -> None:
         return "\n".join(lines)
 
     bad = df[~df["success"]]
-    cols = ["case", "profile", "rate_hz", "missing", "passes_c", "status", "rmse_over_noise"]
+    cols = ["case", "profile", "rate_hz", "missing", "passes_c", "voltage_noise", "status"]
+    cols += ["rmse_over_noise", "theta_over_noise"]
     cols += ["a_rel_err", "b_rel_err", "c_rel_err", "a_z", "b_z", "c_z"]
     fail_lines = [
         "| "
@@ -137,13 +155,17 @@ def main() -> None:
         for _, r in bad.iterrows()
     ]
     low = df[~df["passes_c"]]
+    quiet = df[~df["voltage_noise"]]
+    noisy = df[df["voltage_noise"]]
     text = f"""# Whole-chain fit on a third rig simulator (files read as a user's are)
 
 Command: `python studies/convergence_third_rig.py {args.n} --seed {args.seed}`
 (traces from `studies/third_rig.py`, written by a separate author from the trace format
 and the seed model alone; see the script's docstring for the criteria).
 
-**{int(df["success"].sum())}/{len(df)} cases succeeded.** Median fit
+**{int(df["success"].sum())}/{len(df)} cases succeeded**: {int(quiet["success"].sum())}/{len(quiet)}
+with an exact voltage log, {int(noisy["success"].sum())}/{len(noisy)}
+with noise on the logged voltage (criteria in the script's docstring). Median fit
 {df["seconds"].median():.1f} s, longest {df["seconds"].max():.1f} s (2-core machine,
 compilation included).
 
@@ -154,6 +176,8 @@ compilation included).
 {table("rate_hz")}
 
 {table("passes_c")}
+
+{table("voltage_noise")}
 
 Applies that never pass c: {len(low)}; the fit said a, b, c trade off in
 {int(low.get("says_trade_off", pd.Series(dtype=bool)).sum())} of them.

@@ -299,3 +299,19 @@ def test_forward_selection_picks_the_terms_in_the_data():
     assert sel.features == ("d",)
     none = forward_select(rng.standard_normal(n), base, terms, list("abcde"), threshold=10.0)
     assert none.features == ()
+
+
+def test_a_dead_band_within_the_logged_voltages_noise_is_named_as_possibly_that_noise():
+    """On a clean third-rig trace whose logged voltage carries noise the motor never saw,
+    the diagnosis found stiction of 0.06 V at standstill beside 0.034 V of voltage noise:
+    a dead band absorbs the drift of a motor driven by that noise. The words say so."""
+    mech = Stiction(tau_c_Nm=0.00586)
+    ctx = {"kT": 0.1, "R": 1.0}
+    plain = mech.describe(mech.values(), {"tau_c_Nm": 2.6e-4}, ctx)
+    assert "Caution" not in plain
+    noisy = mech.describe(mech.values(), {"tau_c_Nm": 2.6e-4}, ctx | {"voltage_noise_V": 0.034})
+    assert "within 3x the logged voltage's own noise (0.034 V)" in noisy
+    wide = Stiction(tau_c_Nm=0.05).describe(
+        {"tau_c_Nm": 0.05}, {}, ctx | {"voltage_noise_V": 0.034}
+    )
+    assert "Caution" not in wide

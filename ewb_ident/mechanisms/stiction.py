@@ -33,6 +33,9 @@ _INFO = (
 #: Switching speed of the Coulomb friction, rad/s: small enough to hold the actuator
 #: still (numerical regularisation of the sign function, not a physical parameter).
 STICK_SPEED_RAD_S = 1e-3
+#: A dead band (in volts at standstill) narrower than this many times the logged
+#: voltage's white noise could be that noise absorbed, not friction.
+INPUT_NOISE_RATIO = 3.0
 
 
 class Stiction(AbstractMechanism):
@@ -65,6 +68,9 @@ class Stiction(AbstractMechanism):
         return "the actuator starts late and runs slower than the model in every move"
 
     def describe(self, values, stderr, ctx) -> str:
+        """The finding in words; a dead band no wider than a few times the logged
+        voltage's noise is named as possibly that noise (a rival this trace cannot rule
+        out: see :data:`INPUT_NOISE_RATIO`)."""
         t, se = values["tau_c_Nm"], stderr.get("tau_c_Nm")
         text = f"{self.physics}, tau_c = {fmt_pm(t * 1e3, None if se is None else se * 1e3)} mN*m"
         kT, R = ctx.get("kT"), ctx.get("R")
@@ -73,4 +79,13 @@ class Stiction(AbstractMechanism):
                 f"; the motor does not move until the current exceeds {t / kT:.2f} A "
                 f"(about {t / kT * R:.2f} V at standstill)"
             )
+            noise = ctx.get("voltage_noise_V", 0.0)
+            if t / kT * R < INPUT_NOISE_RATIO * noise:
+                text += (
+                    f". Caution: that dead band is within {INPUT_NOISE_RATIO:g}x the logged "
+                    f"voltage's own noise ({noise:.2g} V); if that noise is the logger's and "
+                    "not the driver's, the model integrates voltage the motor never saw and a "
+                    "dead band absorbs it just as well: check with the driver's commanded "
+                    "voltage or larger moves"
+                )
         return text
