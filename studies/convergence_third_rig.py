@@ -124,6 +124,9 @@ def main() -> None:
             truth = json.loads((Path(tmp) / f"{name}.truth.json").read_text())
             row = run_case(Path(tmp) / f"{name}.csv", truth)
             rows.append(row)
+            # Each trace length compiles new programs; without this a long run exhausts
+            # the process's memory maps (LLVM "Cannot allocate memory" after ~37 cases).
+            jax.clear_caches()
             print(
                 f"{name} {row['profile']:<12} {row['rate_hz']:5d} Hz miss={row['missing']:<28} "
                 f"c={'y' if row['passes_c'] else 'n'} {row['status']:<13} "
