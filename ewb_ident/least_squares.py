@@ -818,30 +818,22 @@ def _hold_one(setup, u, data, st, held, notes, where: str) -> bool:
 def _hold_null_directions(setup, st, per_trace, fixed, held, notes, integrator):
     """Hold, one at a time, the dominant parameter of each null direction of the scaled
     Jacobian at the start (adding to ``held`` and ``notes``); the final set-up, start
-    vector, data and first weights."""
-    if held:
-        setup = _setup(
-            setup.traces,
-            setup.stage,
-            [n for n in setup.free if n not in held],
-            per_trace,
-            fixed | held,
-            integrator,
-        )
+    vector, data and first weights. Parameters already in ``held`` are held first."""
     for _ in range(len(setup.free) + 1):
+        if set(held) & set(setup.free):
+            setup = _setup(
+                setup.traces,
+                setup.stage,
+                [n for n in setup.free if n not in held],
+                per_trace,
+                fixed | held,
+                integrator,
+            )
         u0 = _to_u(setup.problem, st, setup.base, setup.tdata)
         sigma = setup.sensor_sigma()
         data = setup.data(sigma)
         if not _hold_one(setup, u0, data, st, held, notes, "at the start"):
             break
-        setup = _setup(
-            setup.traces,
-            setup.stage,
-            [n for n in setup.free if n not in held],
-            per_trace,
-            fixed | held,
-            integrator,
-        )
     return setup, u0, data, sigma
 
 
@@ -1063,9 +1055,9 @@ def _input_noise_note(trace: Trace, p: EWBParams, tm: Mapping, nz: Mapping) -> l
     if not (trace.has("voltage_V") and m and m["rmse"] is not None):
         return []
     floor = max(nz.get("theta_deg", 0.0), noise_floor(trace["theta_deg"]))
-    excess = float(np.sqrt(max(m["rmse"] ** 2 - floor**2, 0.0)))
     if m["rmse"] < 2.0 * floor:
         return []
+    excess = float(np.sqrt(m["rmse"] ** 2 - floor**2))
     sigma_v = noise_sigma(trace["voltage_V"])
     gain_deg = abs(motor_combinations(p)["motor_gain_rad_per_V_s"]) * 180.0 / np.pi
     drift = gain_deg * sigma_v * trace.dt * np.sqrt(trace.n / 6.0)
