@@ -140,6 +140,7 @@ def saturation_notes(traces, preds, params, corr, names) -> list[str]:
                 + (f" (correlations {', '.join(rho)})" if rho else "")
                 + ": with more noise or a shorter apply, quite different (a, b, c) fit almost "
                 "equally well. Their standard errors above include this; to pin them down, "
-                "record an apply that drives the piston through full clamping, or fix b."
+                "record an apply that drives the piston through full clamping"
+                + (", or fix b." if "b" in idx else ".")
             )
     return notes
