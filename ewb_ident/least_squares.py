@@ -791,7 +791,10 @@ def fit(
         done = all(_is(res, optx.RESULTS.successful) for res in results)
         if done or len(setup.problem.shared) < 2:
             break
-        if not _hold_one(setup, sol.value, data, st, held, held_notes, "where the solver stopped"):
+        if not (
+            _hold_one(setup, sol.value, data, st, held, held_notes, "where the solver stopped")
+            or _hold_flank_exponent(setup, sol.value, data, held, held_notes)
+        ):
             break
     if held_notes:
         setup = dataclasses.replace(setup, notes=setup.notes + tuple(held_notes))
@@ -807,7 +810,7 @@ def _hold_one(setup, u, data, st, held, notes, where: str) -> bool:
     if found is None:
         return False
     name, partners, cond = found
-    if "b" in setup.problem.shared and set(partners) <= BELL_SHAPE:
+    if "b" in partners and set(partners) <= BELL_SHAPE:
         # The force never shows the bell's top (the piston stops on its flank): hold the
         # exponent at the seed value, the remedy the flank note gives, rather than an
         # edge or centre at a start value that may be far off.
@@ -823,6 +826,37 @@ def _hold_one(setup, u, data, st, held, notes, where: str) -> bool:
     notes.append(
         f"the data cannot tell {', '.join(partners)} apart (condition number {cond:.2g} "
         f"{where}): {why}"
+    )
+    return True
+
+
+def _hold_flank_exponent(setup, u, data, held, notes) -> bool:
+    """After a solve that did not converge: if the piston never passes the bell's centre
+    c in any trace at ``u`` and b is free, hold b at the seed value (adding it to
+    ``held`` and the words to ``notes``); whether it was held.
+
+    On the rising flank alone a, b and c trade off along a curved valley whose condition
+    number can stay under :data:`NULL_CONDITION` while the solver still wanders along it
+    (a 100 Hz staircase stopped at its step limit with correlations a-b, a-c, b-c of
+    +1.00). Which coordinate to hold is then set by the physics, not by the spectrum.
+    """
+    if "b" not in setup.problem.shared or setup.stage not in ("chain", "force"):
+        return False
+    preds = _evaluate(setup.problem, u, data)[1]
+    reach = []
+    for k, (t, pred) in enumerate(zip(setup.traces, preds, strict=True)):
+        x = t["x_m"] if t.has("x_m") else pred.get("x_m")
+        if x is None:
+            return False
+        c = float(setup.problem.values(u, data["fixed"] | {"theta0_deg": 0.0}, k)["c"])
+        if not float(np.max(np.asarray(x))) < c:
+            return False
+        reach.append(f"max x = {float(np.max(np.asarray(x))) * 1e3:.3f} mm < c = {c * 1e3:.3f} mm")
+    held["b"] = float(setup.base.b)
+    notes.append(
+        "the solver did not converge and the piston never passes the bell's centre "
+        f"({'; '.join(reach)}): the rising flank alone cannot set a, b and c, so b is held "
+        f"at the seed model's {setup.base.b:.4g}"
     )
     return True
 

@@ -1,11 +1,29 @@
-"""Test configuration: float64 everywhere, as the CLI sets it at its entry point."""
+"""Test configuration: float64 everywhere, as the CLI sets it at its entry point, and
+JAX's on-disk compilation cache in a folder that lives for one test session."""
 
 import gc
+import shutil
+import tempfile
 
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _session_compilation_cache():
+    """Compiled programs are cached on disk for this session only, as the CLI caches them
+    for a user: a module that needs a program an earlier module compiled loads it instead
+    of compiling it again (each module drops its compiled code, below). The folder starts
+    empty, so every session still compiles each program once and nothing carries over
+    between sessions."""
+    folder = tempfile.mkdtemp(prefix="ewb-ident-test-jax-")
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    yield
+    jax.config.update("jax_compilation_cache_dir", None)
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")
