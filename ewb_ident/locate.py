@@ -16,8 +16,9 @@ For each stage, channel and phase the score is the residual RMS over the noise f
 ``sigma`` is rescaled, per stage, by the white-noise level of the residual itself
 (:func:`floor_scale`: second differences cancel a smooth model error), so that a noise
 estimate of the raw channel that is off by some per cent (signal curvature at low
-sample rates, quantisation) neither hides nor invents a mismatch. A phase is flagged
-as a mismatch when
+sample rates, quantisation) neither hides nor invents a mismatch; a phase of at least
+:data:`PHASE_SCALE_MIN_SAMPLES` samples has a floor at least its own residual's white
+level (:func:`phase_floor_scale`). A phase is flagged as a mismatch when
 
 - ``S >= SCORE_MIN`` (the residual is clearly larger than the noise: the floor itself
   is estimated to a few per cent), and ``z = (sum (r/sigma)^2 - n) / sqrt(2 n_eff)`` is
@@ -246,6 +247,31 @@ def floor_scale(check: StageCheck) -> float:
     return float(np.clip(noise_sigma(check.normalized), *FLOOR_SCALE))
 
 
+#: Fewest samples of a phase whose own white-noise level may raise its floor (the robust
+#: scale of n samples is uncertain by about 1.2/sqrt(n): 17 % at 50).
+PHASE_SCALE_MIN_SAMPLES = 50
+
+
+def phase_floor_scale(check: StageCheck, idx: np.ndarray) -> float:
+    """The white-noise level of the normalised residual within one phase (samples
+    ``idx``), as :func:`floor_scale` but over the phase alone; 0 for a phase shorter than
+    :data:`PHASE_SCALE_MIN_SAMPLES`.
+
+    The floor of a teacher-forced stage has two parts, the output's sensor noise and the
+    input's carried through the stage, each estimated from the data and each off by its
+    own factor (signal curvature at low rates inflates one more than the other). One
+    scale per stage then fits the phases where one part dominates and not the others: a
+    clean 100 Hz staircase of another rig had its force residual in the gapping phase at
+    1.4x the stage-scaled floor, white (lag-1 autocorrelation -0.08) and equal to the
+    sensor's true noise. A phase's floor is therefore at least its own residual's white
+    level; second differences cancel a smooth model error, so a structured mismatch is
+    not hidden by this.
+    """
+    if idx.size < PHASE_SCALE_MIN_SAMPLES:
+        return 0.0
+    return float(np.clip(noise_sigma(check.normalized[idx]), *FLOOR_SCALE))
+
+
 def score_check(
     check: StageCheck, labels: np.ndarray, time_s: np.ndarray, *, structured: bool = True
 ) -> list[Mismatch]:
@@ -256,8 +282,7 @@ def score_check(
     mechanism has been added, when what remains at noise level is the approximation of
     the added physics rather than more missing physics.
     """
-    c = floor_scale(check)
-    e = check.normalized / c
+    c_stage = floor_scale(check)
     r = check.residual
     out = []
     for phase in PHASES:
@@ -266,6 +291,8 @@ def score_check(
         n = idx.size
         if n < MIN_SAMPLES:
             continue
+        c = max(c_stage, phase_floor_scale(check, idx))
+        e = check.normalized / c
         q = float(np.sum(e[idx] ** 2))
         score = float(np.sqrt(q / n))
         rho = _lag1(e, idx)

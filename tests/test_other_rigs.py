@@ -72,6 +72,26 @@ def test_whole_chain_fit_converges_on_another_rig(subset, profile, rate, seed):
         ), (name, v[name], getattr(rig, name), se)
 
 
+def _diagnose_cells():
+    for cell in _cells():
+        yield pytest.param(*cell.values, marks=(pytest.mark.slow,), id=cell.id)
+
+
+@pytest.mark.parametrize(("subset", "profile", "rate", "seed"), list(_diagnose_cells()))
+def test_diagnose_finds_nothing_on_a_clean_trace_of_another_rig(subset, profile, rate, seed):
+    """The same cells, diagnosed: a clean trace of another rig (its own integrator,
+    controller, quantised sensors and any channel subset) has no missing physics, so the
+    verdict is ``none``, with no mismatch located and no finding. Slow: a diagnosis per
+    cell (``pytest -m slow``)."""
+    from ewb_ident.diagnose import diagnose
+
+    rig = draw_rig(np.random.default_rng(seed))
+    trace, _ = record(rig, profile=profile, rate_hz=rate, seed=seed, drop=SUBSETS[subset])
+    result = diagnose(trace)
+    assert result.verdict == "none", result.summary()
+    assert result.findings == () and result.mismatches == ()
+
+
 def test_a_coarsely_quantised_angle_is_weighted_by_its_rounding_error():
     """A 1 kHz trace whose angle sensor's step (0.9 deg) is far above its white noise
     (0.05 deg): consecutive samples mostly repeat, second differences are mostly zero,
