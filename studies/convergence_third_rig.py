@@ -46,6 +46,7 @@ sys.path.insert(0, str(ROOT))
 
 import third_rig  # noqa: E402
 
+from ewb_ident.diagnose import diagnose  # noqa: E402
 from ewb_ident.least_squares import fit  # noqa: E402
 from ewb_ident.outputs import write_text  # noqa: E402
 from ewb_ident.traces import read_trace  # noqa: E402
@@ -59,7 +60,7 @@ def _floor(truth: dict, ch: str) -> float:
     return math.hypot(sd, q / math.sqrt(12.0))
 
 
-def run_case(path: Path, truth: dict) -> dict:
+def run_case(path: Path, truth: dict, diagnose_too: bool = False) -> dict:
     trace = read_trace(path)
     t0 = time.perf_counter()
     res = fit(trace)
@@ -102,6 +103,13 @@ def run_case(path: Path, truth: dict) -> dict:
     if not truth["passes_c"]:
         row["says_trade_off"] = any("trade off" in w for w in res.warnings)
     row["success"] = bool(ok)
+    if diagnose_too:
+        t0 = time.perf_counter()
+        d = diagnose(trace)
+        row["diag_seconds"] = round(time.perf_counter() - t0, 2)
+        row["diag_verdict"] = d.verdict
+        row["diag_found"] = " ".join(f.effect for f in d.findings) or "-"
+        row["diag_where"] = " ".join(sorted({f"{m.stage}/{m.phase}" for m in d.mismatches})) or "-"
     return row
 
 
@@ -111,6 +119,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=20261124)
     ap.add_argument("--out", type=Path, default=ROOT.parent / "reports" / "convergence_third")
     ap.add_argument("--only", type=str, default=None, help="comma-separated case indices")
+    ap.add_argument(
+        "--diagnose", action="store_true", help="also diagnose each (clean) trace: verdict none?"
+    )
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     only = {int(i) for i in args.only.split(",")} if args.only else None
@@ -124,7 +135,7 @@ def main() -> None:
             name = f"case_{k:03d}"
             third_rig.write_case(Path(tmp), name, columns, sidecar, truth)
             truth = json.loads((Path(tmp) / f"{name}.truth.json").read_text())
-            row = run_case(Path(tmp) / f"{name}.csv", truth)
+            row = run_case(Path(tmp) / f"{name}.csv", truth, args.diagnose)
             rows.append(row)
             # Each trace length compiles new programs; without this a long run exhausts
             # the process's memory maps (LLVM "Cannot allocate memory" after ~37 cases).
@@ -162,9 +173,10 @@ def main() -> None:
     low = df[~df["passes_c"]]
     quiet = df[~df["voltage_noise"]]
     noisy = df[df["voltage_noise"]]
+    flag = " --diagnose" if args.diagnose else ""
     text = f"""# Whole-chain fit on a third rig simulator (files read as a user's are)
 
-Command: `python studies/convergence_third_rig.py {args.n} --seed {args.seed}`
+Command: `python studies/convergence_third_rig.py {args.n} --seed {args.seed}{flag}`
 (traces from `studies/third_rig.py`, written by a separate author from the trace format
 and the seed model alone; see the script's docstring for the criteria).
 
@@ -193,8 +205,38 @@ Failures:
 |{"---|" * len(cols)}
 {chr(10).join(fail_lines) if fail_lines else "(none)"}
 """
+    if args.diagnose:
+        text += _diagnosis_section(df, args)
     write_text(args.out / "README.md", text)
     print(text)
+
+
+def _diagnosis_section(df: pd.DataFrame, args) -> str:
+    """``--diagnose``: every trace is clean (no planted effect), so the right verdict is
+    ``none``; with noise on the logged voltage the model's input is not what the motor
+    saw, and ``unexplained`` (located in the motor stage or the chain) is honest too."""
+    lines = ["", "## Diagnosis of the same (clean) traces", ""]
+    lines += [f"`python studies/convergence_third_rig.py {args.n} --seed {args.seed} --diagnose`"]
+    lines += ["", "| voltage log | none | unexplained | found | median s | max s |"]
+    lines += ["|---|---|---|---|---|---|"]
+    for label, sel in (("exact", ~df["voltage_noise"]), ("noisy", df["voltage_noise"])):
+        d = df[sel]
+        counts = {v: int((d["diag_verdict"] == v).sum()) for v in ("none", "unexplained", "found")}
+        lines.append(
+            f"| {label} | {counts['none']}/{len(d)} | {counts['unexplained']} | {counts['found']} "
+            f"| {d['diag_seconds'].median():.1f} | {d['diag_seconds'].max():.1f} |"
+        )
+    odd = df[df["diag_verdict"] != "none"]
+    if len(odd):
+        lines += ["", "Not `none`:", "", "| case | profile | rate_hz | missing | voltage_noise "
+                  "| verdict | found | where |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for _, r in odd.iterrows():
+            lines.append(
+                f"| {r['case']} | {r['profile']} | {r['rate_hz']} | {r['missing']} | "
+                f"{r['voltage_noise']} | {r['diag_verdict']} | {r['diag_found']} "
+                f"| {r['diag_where']} |"
+            )
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
