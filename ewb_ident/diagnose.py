@@ -913,6 +913,10 @@ def diagnose(
             )
             k = next(i for i, c in enumerate(candidates) if c is cand)
             candidates[k] = Candidate(**{**cand.__dict__, "selected": True, "rejected": ""})
+            # One rival per stage set: a second located stage with the same stages must
+            # not promote it again (it once did, and the candidate was no longer in the
+            # list by identity) nor add another rival for the mismatch it explains.
+            last_round = [r for r in last_round if r[1].stages != f1.stages]
             selected.append(mech)
             evidence[mech.variant] = ev1 | {"generic_delta_chi2": ev["delta_chi2"]}
             notes_explain.append(f"{mech.variant}: {note}")

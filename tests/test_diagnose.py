@@ -330,3 +330,23 @@ def test_a_smooth_error_in_one_phase_is_still_a_mismatch():
     cells = {m.phase: m for m in score_check(check, labels, t)}
     assert cells["gapping"].flagged, cells["gapping"]
     assert not cells["clamping"].flagged
+
+
+@pytest.mark.slow
+def test_a_rival_is_promoted_once_per_stage_set():
+    """Case 35 of the widened accuracy study (seed 20261218: friction_speed and backlash,
+    1 kHz staircase) raised StopIteration: two located stages promoted the same held-back
+    catalog rival, the second time after the first had replaced it in the list. Now
+    one rival per stage set: both planted effects are named and no other catalog effect
+    (a generic correction may remain at the force stage)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
+    import diagnosis_accuracy
+
+    trace, *_ = diagnosis_accuracy.make_case(
+        35, ("friction_speed", "backlash"), seed=20261218, widen=True
+    )
+    res = diagnose(trace)
+    assert sorted(f.effect for f in res.findings if f.catalog) == ["backlash", "friction_speed"]
