@@ -26,7 +26,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from ewb_ident import rig  # noqa: E402
-from ewb_ident.least_squares import fit  # noqa: E402
+from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 
 def fit_values(trace) -> tuple[dict[str, float], bool]:

@@ -2,7 +2,8 @@
 
     python benchmarks/bench_fit.py [TRACE]        (default: datasets/steps_200hz.csv)
 
-Warm: ``ewb_ident.least_squares`` (everything: start values, two weighted solves, Jacobian,
+Warm: ``ewb_ident.inference.least_squares``
+(everything: start values, two weighted solves, Jacobian,
 standard errors, metrics) after one call that compiled it, against the peer
 (``scipy_peer.py``: LSODA + least_squares with finite differences) fitting the same 14
 parameters with the same weights from the seed values. Medians of repeated runs.
@@ -31,8 +32,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 import scipy_peer  # noqa: E402
 
-from ewb_ident.least_squares import fit  # noqa: E402
-from ewb_ident.traces import read_trace  # noqa: E402
+from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 ROOT = Path(__file__).parents[1]
 

@@ -46,9 +46,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 import scipy_peer  # noqa: E402
 
 from ewb_ident import rig  # noqa: E402
-from ewb_ident.outputs import write_json, write_text  # noqa: E402
-from ewb_ident.posterior import _batched, _build, _starts, _v_logp_q, sample  # noqa: E402
-from ewb_ident.priors import load_priors  # noqa: E402
+from ewb_ident.data.outputs import write_json, write_text  # noqa: E402
+from ewb_ident.inference.posterior import _batched, _build, _starts, _v_logp_q, sample  # noqa: E402
+from ewb_ident.inference.priors import load_priors  # noqa: E402
 
 ABCMU = ("a", "b", "c", "mu")
 

@@ -48,27 +48,27 @@ _PUBLIC = {
 __all__ = sorted(_PUBLIC)
 
 if TYPE_CHECKING:
-    from .diagnose import DiagnoseError as DiagnoseError
-    from .diagnose import DiagnosisResult as DiagnosisResult
-    from .diagnose import diagnose as diagnose
-    from .least_squares import FitError as FitError
-    from .least_squares import FitResult as FitResult
-    from .least_squares import fit as fit
-    from .metrics import channel_metrics as channel_metrics
-    from .params import PARAMS as PARAMS
-    from .params import SEED as SEED
-    from .params import EWBParams as EWBParams
-    from .posterior import PosteriorResult as PosteriorResult
-    from .posterior import SampleError as SampleError
-    from .posterior import sample as sample
-    from .simulate import Integrator as Integrator
-    from .simulate import NumericalWarning as NumericalWarning
-    from .simulate import simulate_chain as simulate_chain
-    from .simulate import simulate_motor as simulate_motor
-    from .traces import Trace as Trace
-    from .traces import TraceError as TraceError
-    from .traces import read_trace as read_trace
-    from .traces import write_trace as write_trace
+    from ewb_ident.data.metrics import channel_metrics as channel_metrics
+    from ewb_ident.data.trace import Trace as Trace
+    from ewb_ident.data.trace import TraceError as TraceError
+    from ewb_ident.data.trace import read_trace as read_trace
+    from ewb_ident.data.trace import write_trace as write_trace
+    from ewb_ident.diagnosis.diagnose import DiagnoseError as DiagnoseError
+    from ewb_ident.diagnosis.diagnose import DiagnosisResult as DiagnosisResult
+    from ewb_ident.diagnosis.diagnose import diagnose as diagnose
+    from ewb_ident.inference.least_squares import FitError as FitError
+    from ewb_ident.inference.least_squares import FitResult as FitResult
+    from ewb_ident.inference.least_squares import fit as fit
+    from ewb_ident.inference.posterior import PosteriorResult as PosteriorResult
+    from ewb_ident.inference.posterior import SampleError as SampleError
+    from ewb_ident.inference.posterior import sample as sample
+    from ewb_ident.model.integrate import Integrator as Integrator
+    from ewb_ident.model.integrate import NumericalWarning as NumericalWarning
+    from ewb_ident.model.integrate import simulate_chain as simulate_chain
+    from ewb_ident.model.integrate import simulate_motor as simulate_motor
+    from ewb_ident.model.params import PARAMS as PARAMS
+    from ewb_ident.model.params import SEED as SEED
+    from ewb_ident.model.params import EWBParams as EWBParams
 
 
 def __getattr__(name: str) -> Any:

@@ -1,5 +1,5 @@
 """``python -m ewb_ident`` runs the command line."""
 
-from .cli import main
+from ewb_ident.cli import main
 
 main()

@@ -4,7 +4,7 @@ For each repeat ``i``: a rig unit is drawn around the nominal rig
 (``rig.vary(RigParams(), default_rng([SEED, i]), rel=0.05)``: every physical parameter
 times a log-normal factor with 5 % spread), a 3 s, 200 Hz trace of the open-loop
 ``steps`` profile is simulated with the rig's default sensor noise (noise seed ``i``),
-and :func:`ewb_ident.posterior.sample` is run with seed ``i`` and default settings
+and :func:`ewb_ident.inference.posterior.sample` is run with seed ``i`` and default settings
 (2 ensembles, DE moves, 2000 steps extended until converged, noise model ``auto``,
 default priors). ``kT`` is held at the unit's true value: without a load-torque
 measurement only ``M/kT`` and ``v/kT`` are identified, so with ``kT`` at the seed value
@@ -45,8 +45,8 @@ import numpy as np
 from scipy import stats as sps
 
 from ewb_ident import rig
-from ewb_ident.outputs import write_text
-from ewb_ident.posterior import sample
+from ewb_ident.data.outputs import write_text
+from ewb_ident.inference.posterior import sample
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTS = ROOT / "reports" / "calibration"

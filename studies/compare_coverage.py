@@ -5,7 +5,7 @@ gap, bell and mu ranges, pad radius 0.10-0.25 m), records it before and after a 
 change (pad change: c by +20...+60 um, b by up to +-8 %, mu by up to +-5 %; a warm motor:
 R by 0...+20 %), with its own profile (open-loop steps, PID position control closed at
 the logging rate, staircase), rate (100 Hz to 1 kHz) and channel subset (all, or no
-current), and runs ``ewb_ident.compare`` on the pair. For every parameter with an
+current), and runs ``ewb_ident.inference.compare`` on the pair. For every parameter with an
 interval, the row holds the true change (zero for an unchanged one) and whether the
 90 % interval holds it. The seed (default 20261128; the first run, before the motor's
 identified combinations replaced L, kb and M without current, used 20261126) is this
@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from other_rig import draw_rig, record  # noqa: E402
 
-from ewb_ident.outputs import write_text  # noqa: E402
+from ewb_ident.data.outputs import write_text  # noqa: E402
 
 SEED = 20261128
 OUT = ROOT / "reports" / "compare_coverage"
@@ -47,8 +47,8 @@ HEADLINE = ("a", "b", "c", "mu", "F_rt", "R", "motor_gain_rad_per_V_s", "motor_l
 def run_case(k: int, seed: int = SEED) -> list[dict]:
     import jax
 
-    from ewb_ident.compare import compare
-    from ewb_ident.least_squares import motor_combination_values
+    from ewb_ident.inference.compare import compare
+    from ewb_ident.inference.least_squares import motor_combination_values
 
     jax.config.update("jax_enable_x64", True)
     rng = np.random.default_rng([seed, k])

@@ -18,10 +18,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from ewb_ident.diagnose import diagnose  # noqa: E402
-from ewb_ident.figures import write_diagnosis  # noqa: E402
-from ewb_ident.outputs import write_text  # noqa: E402
-from ewb_ident.traces import read_trace  # noqa: E402
+from ewb_ident.data.outputs import write_text  # noqa: E402
+from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
+from ewb_ident.reporting.figures import write_diagnosis  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "datasets" / "concealed"

@@ -31,8 +31,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from other_rig import Sensors, draw_rig, record  # noqa: E402
 
-from ewb_ident.least_squares import fit  # noqa: E402
-from ewb_ident.outputs import write_text  # noqa: E402
+from ewb_ident.data.outputs import write_text  # noqa: E402
+from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 SUBSETS = {
     "all": (),

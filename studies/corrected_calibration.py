@@ -10,7 +10,7 @@ the effect's size log-uniform over its range), with this study's own seed (20261
 so no case was seen before. Each trace is
 
 * fitted by the baseline whole-chain least squares (``ewb_ident.fit``), and
-* diagnosed (``ewb_ident.diagnose``); the corrected model is the whole chain refitted
+* diagnosed (``ewb_ident.diagnosis.diagnose``); the corrected model is the whole chain refitted
   from the voltage with the findings on (``diagnosis.json`` ``augmented``). When the
   diagnosis finds no catalog mechanism, the corrected model is the baseline.
 
@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import diagnosis_accuracy as da  # noqa: E402
 
-from ewb_ident.outputs import write_text  # noqa: E402
+from ewb_ident.data.outputs import write_text  # noqa: E402
 
 SEED = 20261125
 OUT = ROOT / "reports" / "corrected_calibration"
@@ -52,8 +52,8 @@ def run_case(i: int, eid: str) -> dict:
     import jax
 
     from ewb_ident import rig
-    from ewb_ident.diagnose import diagnose
-    from ewb_ident.least_squares import fit
+    from ewb_ident.diagnosis.diagnose import diagnose
+    from ewb_ident.inference.least_squares import fit
 
     jax.config.update("jax_enable_x64", True)
     trace, effects, setting, visibility = da.make_case(i, (eid,), seed=SEED)
@@ -86,10 +86,10 @@ def _mu_at_model_reference(trace, effects, mu_rig: float) -> float:
     """The rig's mu where the model defines its mu.
 
     With ``friction_speed`` the rig's mu is mu0 at 50 rad/s, the model's at the mean
-    disc speed while the pads touch (``ewb_ident.diagnose``); the truth of the model's mu
+    disc speed while the pads touch (``ewb_ident.diagnosis.diagnose``); the truth of the model's mu
     is the rig's friction law evaluated there. Elsewhere the rig's mu.
     """
-    from ewb_ident.locate import phase_labels
+    from ewb_ident.diagnosis.locate import phase_labels
 
     for e in effects:
         if e.id == "friction_speed":

@@ -4,7 +4,7 @@
 
 For every trace under ``datasets/`` (the clean datasets and the concealed ones) and each
 of ``current_A``, ``disc_speed_rad_s`` and ``torque_Nm``, the trace without that column
-is diagnosed in this process (``ewb_ident.diagnose``). A case passes when the diagnosis
+is diagnosed in this process (``ewb_ident.diagnosis.diagnose``). A case passes when the diagnosis
 completes; its verdict and findings are recorded beside the planted effects (the
 ``.truth.json``), so that what a missing channel costs is visible. ``--shard K/N`` runs
 every N-th case from the K-th (run the shards at once, then once more without
@@ -35,8 +35,8 @@ def cases() -> list[tuple[Path, str]]:
 
 
 def run(path: Path, drop: str) -> dict:
-    from ewb_ident.diagnose import diagnose
-    from ewb_ident.traces import Trace, read_trace
+    from ewb_ident.data.trace import Trace, read_trace
+    from ewb_ident.diagnosis.diagnose import diagnose
 
     truth = json.loads(path.with_suffix(".truth.json").read_text())
     planted = sorted(truth.get("effects", {}))

@@ -1,7 +1,8 @@
 """Diagnosis accuracy on freshly generated cases (study d).
 
 Every case is a new draw, never used to set a threshold (the thresholds of
-:mod:`ewb_ident.diagnose` and :mod:`ewb_ident.locate` were set on the nominal rig, open
+:mod:`ewb_ident.diagnosis.diagnose` and :mod:`ewb_ident.diagnosis.locate` were set on the
+nominal rig, open
 loop, 200 Hz, noise seed 7, as in ``tests/test_diagnose.py``). For case ``i`` the
 generator ``numpy.random.default_rng([SEED, i])`` draws
 
@@ -45,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from ewb_ident.outputs import write_text
+from ewb_ident.data.outputs import write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "diagnosis_accuracy"
@@ -249,7 +250,7 @@ def run_case(
     i: int, kind: str, ids: tuple[str, ...], seed: int = SEED, widen: bool = False
 ) -> dict[str, Any]:
     """Diagnose case ``i`` and score it against its truth."""
-    from ewb_ident.diagnose import diagnose
+    from ewb_ident.diagnosis.diagnose import diagnose
 
     trace, effects, setting, visibility = make_case(i, ids, seed=seed, widen=widen)
     row: dict[str, Any] = {

@@ -32,11 +32,11 @@ def run(out_dir: Path, progress=None):
 
     jax.config.update("jax_enable_x64", True)
     from ewb_ident import rig
-    from ewb_ident.least_squares import fit
-    from ewb_ident.metrics import SEED_PERCENT_ERROR
-    from ewb_ident.params import SEED
-    from ewb_ident.simulate import SEED_HEUN, heun_amplification, simulate_chain
-    from ewb_ident.validation_report import figure_bell, figure_fit
+    from ewb_ident.data.metrics import SEED_PERCENT_ERROR
+    from ewb_ident.inference.least_squares import fit
+    from ewb_ident.model.integrate import SEED_HEUN, heun_amplification, simulate_chain
+    from ewb_ident.model.params import SEED
+    from ewb_ident.reporting.html import figure_bell, figure_fit
 
     out_dir.mkdir(parents=True, exist_ok=True)
     trace, truth = rig.simulate_rig(rig.RigParams(), profile="steps", sample_rate_hz=100.0, seed=0)
@@ -85,7 +85,7 @@ def run(out_dir: Path, progress=None):
         progress(4, 4)
 
     # 4. Report.
-    from ewb_ident.studies import markdown_table
+    from ewb_ident.study import markdown_table
 
     metrics = [
         {

@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.linalg import expm
 
-from ewb_ident.traces import Trace
+from ewb_ident.data.trace import Trace
 
 OPTIONAL = ("current_A", "torque_Nm", "disc_speed_rad_s")
 

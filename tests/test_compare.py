@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 
 from ewb_ident import rig
-from ewb_ident.compare import compare
+from ewb_ident.inference.compare import compare
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_without_current_the_motor_change_is_given_for_what_is_identified():
     import numpy as np
     from other_rig import draw_rig, record
 
-    from ewb_ident.least_squares import motor_combination_values
+    from ewb_ident.inference.least_squares import motor_combination_values
 
     rng = np.random.default_rng([5, 1])
     old = draw_rig(rng)

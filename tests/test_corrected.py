@@ -8,8 +8,8 @@ import pytest
 from typer.testing import CliRunner
 
 from ewb_ident.cli import app
-from ewb_ident.diagnose import DiagnoseError, fit_corrected, mechanism_templates
-from ewb_ident.traces import read_trace
+from ewb_ident.data.trace import read_trace
+from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected, mechanism_templates
 
 DATA = Path(__file__).parents[1] / "datasets" / "concealed"
 runner = CliRunner()
@@ -167,7 +167,7 @@ def test_sample_with_refuses_options_it_cannot_honour(tmp_path, extra):
 
 
 def test_a_prior_for_an_unknown_mechanism_parameter_is_refused():
-    from ewb_ident.priors import PriorError, load_priors
+    from ewb_ident.inference.priors import PriorError, load_priors
 
     with pytest.raises(PriorError, match=r"\[backlash.width\]: unknown parameter"):
         load_priors({"backlash.width": {"dist": "uniform", "lower": 0.0, "upper": 1.0}})

@@ -21,10 +21,10 @@ from typer.testing import CliRunner
 
 from ewb_ident import rig
 from ewb_ident.cli import app
-from ewb_ident.diagnose import DiagnoseError, DiagnosisResult, diagnose
-from ewb_ident.least_squares import fit
-from ewb_ident.outputs import json_text
-from ewb_ident.traces import Trace, write_trace
+from ewb_ident.data.outputs import json_text
+from ewb_ident.data.trace import Trace, write_trace
+from ewb_ident.diagnosis.diagnose import DiagnoseError, DiagnosisResult, diagnose
+from ewb_ident.inference.least_squares import fit
 
 P = rig.RigParams()
 SETTINGS = dict(seed=7, sample_rate_hz=200.0, duration_s=2.0, t_hold_s=1.0)
@@ -269,7 +269,7 @@ def test_thresholds_are_reported():
 def test_a_rival_the_trace_cannot_tell_apart_is_named():
     from types import SimpleNamespace
 
-    from ewb_ident.diagnose import _finding
+    from ewb_ident.diagnosis.diagnose import _finding
     from ewb_ident.mechanisms import FrictionFade
 
     mech = FrictionFade(phi_per_J=2e-6)
@@ -296,7 +296,7 @@ def _phase_check(gapping_residual: np.ndarray, rest_sd: float, seed: int = 3):
     """A force-stage check of 600 samples with a floor of 1 N everywhere: ``gapping``
     (the first 100 samples) carries ``gapping_residual``, the other phases white noise
     of ``rest_sd``."""
-    from ewb_ident.locate import StageCheck
+    from ewb_ident.diagnosis.locate import StageCheck
 
     rng = np.random.default_rng(seed)
     labels = np.array(["gapping"] * 100 + ["clamping"] * 200 + ["saturation"] * 200
@@ -311,7 +311,7 @@ def test_white_noise_above_the_floor_in_one_phase_is_noise_not_a_mismatch():
     different factors, so one phase's white residual sits above the stage-scaled floor:
     1.4x in the gapping phase while the rest is at 0.8x (a clean 100 Hz staircase of
     another rig did this). White excess confined to a phase is the floor's error."""
-    from ewb_ident.locate import score_check
+    from ewb_ident.diagnosis.locate import score_check
 
     rng = np.random.default_rng(4)
     check, labels, t = _phase_check(1.4 * rng.standard_normal(100), 0.8)
@@ -322,7 +322,7 @@ def test_white_noise_above_the_floor_in_one_phase_is_noise_not_a_mismatch():
 def test_a_smooth_error_in_one_phase_is_still_a_mismatch():
     """The phase's own floor comes from second differences, which cancel a smooth model
     error: a slow bump of 1.5x the noise in the gapping phase stays flagged."""
-    from ewb_ident.locate import score_check
+    from ewb_ident.diagnosis.locate import score_check
 
     rng = np.random.default_rng(5)
     bump = 1.5 * np.sin(np.linspace(0.0, np.pi, 100))

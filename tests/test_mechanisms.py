@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from ewb_ident import rig
+from ewb_ident.diagnosis.correction import GenericCorrection, forward_select
+from ewb_ident.inference.augmented import fit_mechanisms, make_data
 from ewb_ident.mechanisms import (
     CATALOG,
     Backlash,
@@ -29,12 +31,10 @@ from ewb_ident.mechanisms import (
     variants,
 )
 from ewb_ident.mechanisms.base import fmt_pm
-from ewb_ident.mechanisms.correction import GenericCorrection, forward_select
-from ewb_ident.mechanisms.fitting import fit_mechanisms, make_data
-from ewb_ident.mechanisms.model import motor_states, predict
 from ewb_ident.mechanisms.stiction import STICK_SPEED_RAD_S
-from ewb_ident.params import EWBParams
-from ewb_ident.physics import clamp_force
+from ewb_ident.model.params import EWBParams
+from ewb_ident.model.physics import clamp_force
+from ewb_ident.model.predict import motor_states, predict
 
 P = rig.RigParams()
 QUIET = rig.SensorNoise.none()

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from other_rig import Sensors, draw_rig, record
 
-from ewb_ident.least_squares import fit
+from ewb_ident.inference.least_squares import fit
 
 SUBSETS = {
     "all": (),
@@ -83,7 +83,7 @@ def test_diagnose_finds_nothing_on_a_clean_trace_of_another_rig(subset, profile,
     controller, quantised sensors and any channel subset) has no missing physics, so the
     verdict is ``none``, with no mismatch located and no finding. Slow: a diagnosis per
     cell (``pytest -m slow``)."""
-    from ewb_ident.diagnose import diagnose
+    from ewb_ident.diagnosis.diagnose import diagnose
 
     rig = draw_rig(np.random.default_rng(seed))
     trace, _ = record(rig, profile=profile, rate_hz=rate, seed=seed, drop=SUBSETS[subset])

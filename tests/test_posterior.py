@@ -22,11 +22,11 @@ from typer.testing import CliRunner
 
 from ewb_ident import rig
 from ewb_ident.cli import app
-from ewb_ident.outputs import json_text
-from ewb_ident.params import PARAMS
-from ewb_ident.posterior import PosteriorResult, SampleError, sample
-from ewb_ident.priors import Prior, PriorError, load_priors, parse_prior
-from ewb_ident.traces import Trace
+from ewb_ident.data.outputs import json_text
+from ewb_ident.data.trace import Trace
+from ewb_ident.inference.posterior import PosteriorResult, SampleError, sample
+from ewb_ident.inference.priors import Prior, PriorError, load_priors, parse_prior
+from ewb_ident.model.params import PARAMS
 
 DATA = Path(__file__).parents[1] / "datasets"
 ABCMU = ("a", "b", "c", "mu")
@@ -184,7 +184,7 @@ def test_correlated_residuals_switch_on_ar1_and_widen_the_interval():
 
 def test_log_posterior_matches_an_independent_numpy_computation(force_torque):
     """Prior + log-Jacobian + marginal likelihood Q^(-n/2), written out in NumPy."""
-    from ewb_ident.posterior import _batched, _build, _v_logp_q
+    from ewb_ident.inference.posterior import _batched, _build, _v_logp_q
 
     trace, _ = force_torque
     res = sample(trace, stage="force", free=["a", "b", "c"], n_steps=40, max_steps=40, seed=0)

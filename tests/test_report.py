@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ewb_ident.least_squares import fit
-from ewb_ident.traces import read_trace
-from ewb_ident.validation_report import build_report, write_report
+from ewb_ident.data.trace import read_trace
+from ewb_ident.inference.least_squares import fit
+from ewb_ident.reporting.html import build_report, write_report
 
 DATA = Path(__file__).parents[1] / "datasets"
 
@@ -87,7 +87,7 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
 @pytest.fixture(scope="module")
 def hysteresis():
     """The README's main job: its trace, baseline fit and diagnosis (computed once)."""
-    from ewb_ident.diagnose import diagnose
+    from ewb_ident.diagnosis.diagnose import diagnose
 
     path = DATA / "concealed" / "force_hysteresis.csv"
     trace = read_trace(path)
@@ -110,7 +110,7 @@ def test_report_with_a_finding_shows_both_models_and_the_banner(hysteresis):
     beside the baseline's with the corrected posterior's HDIs, the truth inside them."""
     import json
 
-    from ewb_ident.posterior import sample_corrected
+    from ewb_ident.inference.posterior import sample_corrected
 
     path, trace, result, diagnosis = hysteresis
     assert diagnosis.corrected_mechanisms() == ["force_hysteresis"]
@@ -152,7 +152,7 @@ def test_report_command_writes_a_page(tmp_path):
 
 
 def test_report_renders_the_posterior_section():
-    from ewb_ident.posterior import sample
+    from ewb_ident.inference.posterior import sample
 
     trace = read_trace(DATA / "staircase_200hz.csv")
     result = fit(trace, stage="force")
@@ -162,7 +162,7 @@ def test_report_renders_the_posterior_section():
     assert "posterior mean" in page and "90 % interval" in page
     # the measured-vs-simulated figure's band: 90 % posterior predictive of the force,
     # which holds about 90 % of the measured samples when the model is right
-    from ewb_ident.validation_report import _predictive_bands
+    from ewb_ident.reporting.html import _predictive_bands
 
     lo, hi = _predictive_bands(post, trace)["force_N"]
     inside = float(np.mean((trace["force_N"] >= lo) & (trace["force_N"] <= hi)))

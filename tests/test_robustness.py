@@ -11,8 +11,8 @@ import pytest
 from typer.testing import CliRunner
 
 from ewb_ident.cli import app
-from ewb_ident.least_squares import FitError, fit
-from ewb_ident.traces import Trace, read_trace
+from ewb_ident.data.trace import Trace, read_trace
+from ewb_ident.inference.least_squares import FitError, fit
 
 DATA = Path(__file__).parents[1] / "datasets"
 runner = CliRunner()
@@ -202,8 +202,8 @@ def test_compare_is_a_command(tmp_path):
 def test_diagnose_without_current(tmp_path):
     """Was: KeyError 'current_A' (metrics and the chain figure) on every trace without a
     current sensor. Also: the diagnosis reports its progress step by step."""
-    from ewb_ident.diagnose import diagnose
-    from ewb_ident.figures import write_diagnosis
+    from ewb_ident.diagnosis.diagnose import diagnose
+    from ewb_ident.reporting.figures import write_diagnosis
 
     path = _without(tmp_path, "clean_steps", ["current_A"])
     steps: list[str] = []
@@ -256,7 +256,7 @@ def test_a_sidecar_nested_too_deep_and_a_table_too_long_are_refused_early(tmp_pa
 
 def test_report_figures_survive_a_long_trace_name(tmp_path):
     """Was: 'File name too long' for a legal 249-character trace name."""
-    from ewb_ident.validation_report import build_report, write_report
+    from ewb_ident.reporting.html import build_report, write_report
 
     trace = read_trace(DATA / "staircase_200hz.csv")
     long = Trace(

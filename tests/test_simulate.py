@@ -5,9 +5,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from ewb_ident.params import EWBParams
-from ewb_ident.physics import clamp_force, gap
-from ewb_ident.simulate import (
+from ewb_ident.model.integrate import (
     SEED_HEUN,
     Integrator,
     NumericalWarning,
@@ -15,6 +13,8 @@ from ewb_ident.simulate import (
     simulate_chain,
     simulate_motor,
 )
+from ewb_ident.model.params import EWBParams
+from ewb_ident.model.physics import clamp_force, gap
 
 P = EWBParams()  # L/R = 2 ms
 
@@ -133,7 +133,7 @@ def test_chain_gradient_is_finite_at_the_bell_centre():
 
 
 def test_noise_of_a_quantised_channel_is_at_least_its_rounding_error():
-    from ewb_ident.metrics import noise_sigma, quantisation_step
+    from ewb_ident.data.metrics import noise_sigma, quantisation_step
 
     rng = np.random.default_rng(3)
     t = np.linspace(0.0, 3.0, 3000)

@@ -3,7 +3,7 @@
 import pandas as pd
 import pytest
 
-from ewb_ident.studies import StudyError, load_study, run_study, summarise
+from ewb_ident.study import StudyError, load_study, run_study, summarise
 
 MINI = """
 [study]

@@ -14,8 +14,8 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
 
 import third_rig  # noqa: E402
 
-from ewb_ident.least_squares import fit  # noqa: E402
-from ewb_ident.traces import read_trace  # noqa: E402
+from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 
 def _case(tmp_path, seed, k):

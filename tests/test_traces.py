@@ -1,4 +1,4 @@
-"""Tests of reading, validating, mapping and writing rig traces (ewb_ident.traces)."""
+"""Tests of reading, validating, mapping and writing rig traces (ewb_ident.data.trace)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pandas as pd
 import pytest
 import scipy.io
 
-from ewb_ident import traces
-from ewb_ident.traces import (
+from ewb_ident.data import trace as traces
+from ewb_ident.data.trace import (
     COLUMNS,
     Trace,
     TraceError,

@@ -8,18 +8,18 @@ tries (a sensor mechanism once per channel it can act on).
 
 from __future__ import annotations
 
-from ..params import ParamInfo
-from .backlash import Backlash as Backlash
-from .base import HOOKS as HOOKS
-from .base import AbstractMechanism as AbstractMechanism
-from .current_limit import CurrentLimit as CurrentLimit
-from .force_hysteresis import ForceHysteresis as ForceHysteresis
-from .friction_fade import FrictionFade as FrictionFade
-from .friction_speed import FrictionSpeed as FrictionSpeed
-from .sensor_delay import SensorDelay as SensorDelay
-from .sensor_offset import SensorOffset as SensorOffset
-from .stiction import Stiction as Stiction
-from .wedge_load_torque import WedgeLoadTorque as WedgeLoadTorque
+from ewb_ident.mechanisms.backlash import Backlash as Backlash
+from ewb_ident.mechanisms.base import HOOKS as HOOKS
+from ewb_ident.mechanisms.base import AbstractMechanism as AbstractMechanism
+from ewb_ident.mechanisms.current_limit import CurrentLimit as CurrentLimit
+from ewb_ident.mechanisms.force_hysteresis import ForceHysteresis as ForceHysteresis
+from ewb_ident.mechanisms.friction_fade import FrictionFade as FrictionFade
+from ewb_ident.mechanisms.friction_speed import FrictionSpeed as FrictionSpeed
+from ewb_ident.mechanisms.sensor_delay import SensorDelay as SensorDelay
+from ewb_ident.mechanisms.sensor_offset import SensorOffset as SensorOffset
+from ewb_ident.mechanisms.stiction import Stiction as Stiction
+from ewb_ident.mechanisms.wedge_load_torque import WedgeLoadTorque as WedgeLoadTorque
+from ewb_ident.model.params import ParamInfo
 
 #: Catalog id -> mechanism class.
 CATALOG: dict[str, type[AbstractMechanism]] = {

@@ -5,7 +5,7 @@ differentiable augmentation of one link of the chain. It declares
 
 - ``id`` (the catalog id of ``shared/CONTRACTS.md``) and the ``stage`` it acts on;
 - the ``hook`` it plugs into (:data:`HOOKS`): where in the chain its function is called;
-- its parameters as :class:`ewb_ident.params.ParamInfo` (SI units, a transform to an
+- its parameters as :class:`ewb_ident.model.params.ParamInfo` (SI units, a transform to an
   unconstrained O(1) coordinate for the optimiser, and *plausibility bounds*: a fitted
   value outside them, or at them, is not reported as a finding);
 - the teacher-forced ``stages`` whose residuals it changes (a sensor mechanism on
@@ -50,7 +50,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..params import EWBParams, ParamInfo
+from ewb_ident.model.params import EWBParams, ParamInfo
 
 Hook = Literal[
     "voltage",
@@ -176,7 +176,7 @@ class AbstractMechanism(eqx.Module):
 
         *Resolved*: the parameter's 90 % interval (``± RESOLVED_Z`` standard errors)
         excludes no effect. This is not the significance test (that is the likelihood
-        ratio / BIC of :func:`ewb_ident.diagnose.diagnose`, which stays valid when the
+        ratio / BIC of :func:`ewb_ident.diagnosis.diagnose.diagnose`, which stays valid when the
         mechanism's parameters are correlated and their standard errors large); it keeps a
         reported value from being indistinguishable from zero."""
         for info in self.param_info():

@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from ..params import ParamInfo
-from .base import AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
+from ewb_ident.model.params import ParamInfo
 
 _INFO = (
     ParamInfo(

@@ -13,8 +13,8 @@ from typing import Any, ClassVar
 
 from jax.typing import ArrayLike
 
-from ..params import ParamInfo
-from .base import AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
+from ewb_ident.model.params import ParamInfo
 
 _INFO = (
     ParamInfo(

@@ -15,8 +15,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from ..params import ParamInfo
-from .base import CHANNEL_INPUT_OF, CHANNEL_STAGE, AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import CHANNEL_INPUT_OF, CHANNEL_STAGE, AbstractMechanism, fmt_pm
+from ewb_ident.model.params import ParamInfo
 
 _INFO = (ParamInfo("delay_s", "s", "log", 0.01, lower=1e-4, upper=0.25, doc="sensor delay"),)
 

@@ -14,8 +14,8 @@ from typing import Any, ClassVar
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from ..params import EWBParams, ParamInfo
-from .base import AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
+from ewb_ident.model.params import EWBParams, ParamInfo
 
 _INFO = (
     ParamInfo(

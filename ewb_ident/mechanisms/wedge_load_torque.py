@@ -7,7 +7,7 @@ it stops (``omega0``, a small speed, is fitted as a nuisance); a wedge that is n
 self-locking gives the second, a reaction of one direction that drives the pinion back
 toward release (``k_r > 0``), so that holding the force takes current. The first is
 integrated implicitly as a friction-like torque, the second explicitly as a load torque
-(:func:`ewb_ident.mechanisms.model.motor_states`); ``F`` is the model's clamping force
+(:func:`ewb_ident.model.predict.motor_states`); ``F`` is the model's clamping force
 at the state's pinion angle.
 """
 
@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from ..params import EWBParams, ParamInfo
-from .base import RESOLVED_Z, AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import RESOLVED_Z, AbstractMechanism, fmt_pm
+from ewb_ident.model.params import EWBParams, ParamInfo
 
 _INFO = (
     ParamInfo(

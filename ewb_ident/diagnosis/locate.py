@@ -5,7 +5,7 @@ voltage -> angle and current; gap: angle -> displacement; force: displacement ->
 torque: force -> torque), and the whole chain from the voltage. Each residual
 (measured minus model) is compared with its *noise floor*: the sensor noise of the
 output channel, estimated from the data (second differences, see
-:func:`ewb_ident.metrics.noise_sigma`), plus, for a teacher-forced stage, the input
+:func:`ewb_ident.data.metrics.noise_sigma`), plus, for a teacher-forced stage, the input
 channel's sensor noise carried through the stage (``|df/din| sigma_in``). Residuals are
 split by the phase of the brake application (:func:`phase_labels`).
 
@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import noise_sigma
-from .traces import Trace
+from ewb_ident.data.metrics import noise_sigma, smooth
+from ewb_ident.data.trace import Trace
 
 PHASES: tuple[str, ...] = ("gapping", "clamping", "saturation", "release")
 
@@ -74,16 +74,6 @@ UNITS: dict[str, str] = {
 
 
 # ----------------------------------------------------------------------------- phases
-
-
-def smooth(y: np.ndarray, width: int) -> np.ndarray:
-    """Centred moving average over ``width`` samples (odd), ends held."""
-    width = max(1, int(width) | 1)
-    if width == 1:
-        return np.asarray(y, float).copy()
-    pad = width // 2
-    yp = np.concatenate([np.full(pad, y[0]), y, np.full(pad, y[-1])])
-    return np.convolve(yp, np.ones(width) / width, mode="valid")
 
 
 def motion_rate(trace: Trace) -> np.ndarray:
@@ -241,7 +231,7 @@ def floor_scale(check: StageCheck) -> float:
     """How much the residual's own white-noise level differs from the modelled floor.
 
     The second differences of the residual over the floor (robust scale, see
-    :func:`ewb_ident.metrics.noise_sigma`) cancel any smooth model error and keep the
+    :func:`ewb_ident.data.metrics.noise_sigma`) cancel any smooth model error and keep the
     white noise, sensor and carried input noise alike; clipped to :data:`FLOOR_SCALE`.
     """
     return float(np.clip(noise_sigma(check.normalized), *FLOOR_SCALE))

@@ -36,8 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from .params import EWBParams
-from .physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
+from ewb_ident.model.params import EWBParams
+from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
 
 #: ``tau(state, params) -> N*m``: a load torque on the motor from the state (i, omega,
 #: theta [rad]). It must be a hashable, pure function (it is a static argument of jit).
@@ -90,7 +90,7 @@ def _mm(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
-def _mv(A: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
+def matvec(A: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
     """Small matrix-vector product as a fused multiply-add (see :func:`_mm`)."""
     return jnp.sum(A * x[None, :], axis=1)
 
@@ -147,17 +147,17 @@ def _sample_map(A, B_V, h, n_sub: int, method: Method) -> tuple[jnp.ndarray, jnp
     if method == "heun":
         eye = jnp.eye(n, dtype=A.dtype)
         F = eye + h * A + 0.5 * h * h * _mm(A, A)
-        g = _mv(h * eye + 0.5 * h * h * A, B_V)
+        g = matvec(h * eye + 0.5 * h * h * A, B_V)
     else:
         F, P1, _ = phi_matrices(A, h)
-        g = _mv(P1, B_V)
+        g = matvec(P1, B_V)
     Fs, gs = F, g
     for _ in range(n_sub - 1):
-        Fs, gs = _mm(F, Fs), _mv(F, gs) + g
+        Fs, gs = _mm(F, Fs), matvec(F, gs) + g
     return Fs, gs
 
 
-def _motor_states(
+def seed_motor_states(
     params: EWBParams,
     voltage_V: jnp.ndarray,
     dt: ArrayLike,
@@ -181,7 +181,7 @@ def _motor_states(
         F, g = _sample_map(A, B_V, h, n_sub, method)
 
         def linear_step(s, V):
-            return _mv(F, s) + g * V, s
+            return matvec(F, s) + g * V, s
 
         return jax.lax.scan(linear_step, s0, V)[1]
 
@@ -191,7 +191,7 @@ def _motor_states(
     if method == "heun":
 
         def rhs(s, V):
-            return _mv(A, s) + B_V * V + B_tau * tau(s)
+            return matvec(A, s) + B_V * V + B_tau * tau(s)
 
         def substep(s, V):
             k1 = rhs(s, V)
@@ -203,8 +203,8 @@ def _motor_states(
 
         def substep(s, V):
             N0 = B_V * V + B_tau * tau(s)
-            a = _mv(E, s) + _mv(P1, N0)
-            return a + _mv(P2, B_tau * (tau(a) - tau(s)))
+            a = matvec(E, s) + matvec(P1, N0)
+            return a + matvec(P2, B_tau * (tau(a) - tau(s)))
 
     def step(s, V):
         return jax.lax.fori_loop(0, n_sub, lambda _, s: substep(s, V), s), s
@@ -246,7 +246,7 @@ def simulate_motor(
     n_sub = integrator.substeps(float(dt), load_torque is not None)
     if integrator.method == "heun":
         _warn_if_heun_unstable(params, float(dt) / n_sub)
-    states = _motor_states(
+    states = seed_motor_states(
         params, jnp.asarray(voltage_V), dt, theta0_deg, n_sub, integrator.method, load_torque
     )
     return {

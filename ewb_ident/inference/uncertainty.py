@@ -55,7 +55,7 @@ def parameter_uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) ->
     u
         The optimum in unconstrained coordinates, shape (p,).
     infos
-        The :class:`~ewb_ident.params.ParamInfo` of each coordinate.
+        The :class:`~ewb_ident.model.params.ParamInfo` of each coordinate.
     """
     n, p = J.shape
     if p == 0:

@@ -2,10 +2,10 @@
 
 What is sampled
 ---------------
-The free coordinates ``u`` of the least-squares problem(s) (:mod:`ewb_ident.params`:
+The free coordinates ``u`` of the least-squares problem(s) (:mod:`ewb_ident.model.params`:
 O(1), unconstrained), for the whole chain or for teacher-forced stages (several stages
 at once are independent blocks of one log-probability). The log-Jacobian of each
-transform is added, so the priors (:mod:`ewb_ident.priors`) are on the physical values.
+transform is added, so the priors (:mod:`ewb_ident.inference.priors`) are on the physical values.
 
 Likelihood
 ----------
@@ -60,11 +60,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .least_squares import STAGES, FitError, FitResult, _Problem, fit
-from .params import PARAMS, STAGE_PARAMS, ParamInfo
-from .priors import Prior, load_priors, mechanism_prior, param_info
-from .simulate import EXPONENTIAL, Integrator
-from .traces import STAGE_COLUMNS, Trace
+from ewb_ident.data.trace import STAGE_COLUMNS, Trace
+from ewb_ident.inference.least_squares import STAGES, FitError, FitResult, StageProblem, fit
+from ewb_ident.inference.priors import Prior, load_priors, mechanism_prior, param_info
+from ewb_ident.model.integrate import EXPONENTIAL, Integrator
+from ewb_ident.model.params import PARAMS, STAGE_PARAMS, ParamInfo
 
 #: The parameters every summary reports (CONTRACTS.md).
 CONTRACT_PARAMS: tuple[str, ...] = ("a", "b", "c", "mu")
@@ -119,7 +119,7 @@ def _ar1_q(r: jnp.ndarray, phi: jnp.ndarray) -> jnp.ndarray:
 class _LogPost(eqx.Module):
     """Log posterior of the unconstrained vector ``u`` (noise levels marginalised)."""
 
-    problems: tuple[_Problem, ...]
+    problems: tuple[StageProblem, ...]
     datas: tuple[dict, ...]
     phi: jnp.ndarray
     slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -652,9 +652,9 @@ def sample(
         ``("force", "torque")``: independent blocks of one posterior), or ``"stages"``
         (every teacher-forced stage the traces can serve).
     free, per_trace, fixed, integrator
-        As for :func:`ewb_ident.least_squares` (``free`` names may span the given stages).
+        As for :func:`ewb_ident.inference.least_squares` (``free`` names may span the given stages).
     priors
-        A TOML file (or parsed tables) overriding ``ewb_ident/priors.toml``.
+        A TOML file (or parsed tables) overriding ``ewb_ident/inference/priors.toml``.
     noise_model
         ``"auto"``, ``"white"`` or ``"ar1"`` (module docstring).
     n_walkers
@@ -760,9 +760,8 @@ def _sample(
 
 def sample_corrected(
     trace: Trace,
-    mechanisms: Sequence[str] = (),
+    corrected: Any,
     *,
-    corrected: Any | None = None,
     priors: str | Path | Mapping[str, Any] | None = None,
     noise_model: str = "auto",
     n_walkers: int | None = None,
@@ -777,9 +776,12 @@ def sample_corrected(
 ) -> PosteriorResult:
     """Sample the posterior of the whole chain corrected by catalog mechanisms.
 
-    The start is :func:`ewb_ident.diagnose.fit_corrected` (the seed chain with the
-    mechanisms, fitted from the voltage); the sampled parameters are its free ones: the
-    base parameters the channels determine and every mechanism parameter
+    The start is a corrected fit of the trace,
+    :func:`ewb_ident.diagnosis.diagnose.fit_corrected` (the seed chain with the
+    mechanisms, fitted from the voltage) or the diagnosis's
+    (:attr:`ewb_ident.diagnosis.diagnose.DiagnosisResult.corrected`); the sampled
+    parameters are its free ones: the base parameters the channels determine and every
+    mechanism parameter
     (``"variant.param"``). A mechanism parameter's prior is uniform (log-uniform when
     positive and log-scaled) over the catalog's range unless the prior file has a table
     of that name, e.g. ``["backlash.beta_deg"]``.
@@ -788,12 +790,10 @@ def sample_corrected(
     ----------
     trace
         One trace with ``voltage_V`` and ``theta_deg``.
-    mechanisms
-        Catalog ids or variants, e.g. ``["backlash", "sensor_delay[force_N]"]``.
     corrected
-        A corrected fit of ``trace`` to start from instead of fitting one (e.g. the
-        diagnosis's, :attr:`ewb_ident.diagnose.DiagnosisResult.corrected`); then
-        ``mechanisms`` is not needed.
+        The corrected fit of ``trace`` (a
+        :class:`ewb_ident.diagnosis.diagnose.CorrectedFit`) whose free parameters are
+        sampled.
     priors, noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob,
     max_draws, seed, progress
         As for :func:`sample`.
@@ -806,24 +806,17 @@ def sample_corrected(
 
     Raises
     ------
-    SampleError, PriorError, DiagnoseError
+    SampleError, PriorError
         Settings, priors or mechanisms that cannot be used with this trace.
     """
-    from .diagnose import fit_corrected
-
     _check_options(
         noise_model, n_walkers, n_steps, max_steps, n_ensembles, hdi_prob, min_ess, max_draws, seed
     )
     prior_table = load_priors(priors)
     with jax.enable_x64(True):
         t_start = time.perf_counter()
-        if corrected is not None:
-            cf = corrected
-        elif mechanisms:
-            cf = fit_corrected(trace, mechanisms)
-        else:
-            raise SampleError("name at least one catalog mechanism, or give a corrected fit")
-        start = _corrected_start(trace, cf)
+        cf = corrected
+        start = _corrected_start(trace, corrected)
         table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
         t_fit = time.perf_counter()
         lp, names, u0, segs = _build([start], table, noise_model, [trace.time_s])
@@ -857,7 +850,7 @@ class _AugChain(eqx.Module):
 @dataclass(frozen=True)
 class _CorrectedStart:
     """The corrected least-squares fit as the start of a posterior: what :func:`_build`
-    and :func:`_starts` read from a :class:`~ewb_ident.least_squares.FitResult`."""
+    and :func:`_starts` read from a :class:`~ewb_ident.inference.least_squares.FitResult`."""
 
     trace_names: tuple[str, ...]
     corr_names: tuple[str, ...]
@@ -870,14 +863,14 @@ class _CorrectedStart:
 
 
 def _corrected_start(trace: Trace, cf) -> _CorrectedStart:
-    from .mechanisms.fitting import _res_jac
+    from ewb_ident.inference.augmented import residuals_and_jacobian
 
     f, aug, n = cf.fit, cf.data, trace.n
     names = list(f.problem.free) + [
         f"{m.variant}.{i.name}" for m in f.problem.templates() for i in m.param_info()
     ]
     chans = tuple(f.problem.channels)
-    J = np.asarray(_res_jac(f.problem, jnp.asarray(f.u), aug)[1])
+    J = np.asarray(residuals_and_jacobian(f.problem, jnp.asarray(f.u), aug)[1])
     cov = np.linalg.pinv(J.T @ J)
     sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     data = {

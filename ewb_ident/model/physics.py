@@ -5,7 +5,7 @@
 
 The motor is written in state-space form with state ``s = (i, omega, theta)`` in
 (A, rad/s, rad): ``ds/dt = A s + B_V V + B_tau tau``. Integrating it is the job of
-:mod:`ewb_ident.simulate`. Every function here is differentiable and vectorises.
+:mod:`ewb_ident.model.integrate`. Every function here is differentiable and vectorises.
 """
 
 from __future__ import annotations

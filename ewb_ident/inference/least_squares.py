@@ -10,11 +10,11 @@ What is fitted
 
 Weights. Each channel's residuals are divided by that channel's noise level, which is
 estimated, not hand-set: first from the data (second differences, see
-:func:`ewb_ident.metrics.noise_sigma`), then, after a first solve, from the residuals
+:func:`ewb_ident.data.metrics.noise_sigma`), then, after a first solve, from the residuals
 themselves (the maximum-likelihood estimate for Gaussian noise), and the fit is solved
 again from there.
 
-Parameters are optimised in unconstrained O(1) coordinates (:mod:`ewb_ident.params`);
+Parameters are optimised in unconstrained O(1) coordinates (:mod:`ewb_ident.model.params`);
 standard errors come from the Jacobian at the optimum (delta method back to SI units).
 The solver is optimistix's Levenberg-Marquardt; its result code is always checked.
 """
@@ -32,20 +32,24 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .initial import bell_start, motor_lag, motor_start
-from .metrics import (
+from ewb_ident.data.metrics import (
     SEED_ACCEPTANCE_PCT,
     SEED_PERCENT_ERROR,
     channel_metrics,
     noise_floor,
     noise_sigma,
 )
-from .outputs import null_nonfinite
-from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
-from .physics import brake_torque, clamp_force, gap
-from .simulate import EXPONENTIAL, Integrator, _motor_states, heun_amplification
-from .traces import CHANNELS, STAGE_COLUMNS, Trace, TraceError
-from .uncertainty import identifiability_notes, parameter_uncertainty, saturation_notes
+from ewb_ident.data.outputs import null_nonfinite
+from ewb_ident.data.trace import CHANNELS, STAGE_COLUMNS, Trace, TraceError
+from ewb_ident.inference.initial import bell_start, motor_lag, motor_start
+from ewb_ident.inference.uncertainty import (
+    identifiability_notes,
+    parameter_uncertainty,
+    saturation_notes,
+)
+from ewb_ident.model.integrate import EXPONENTIAL, Integrator, heun_amplification, seed_motor_states
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
+from ewb_ident.model.physics import brake_torque, clamp_force, gap
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 STAGES: tuple[str, ...] = ("motor", "gap", "force", "torque", "chain")
@@ -154,7 +158,7 @@ def structural_notes(stage: str, traces: Sequence[Trace], free: Sequence[str]) -
 # ----------------------------------------------------------------------------- problem
 
 
-class _Problem(eqx.Module):
+class StageProblem(eqx.Module):
     """Weighted residuals of one fit as a function of the unconstrained vector ``u``.
 
     All configuration is static (hashable), so solving the same problem on new data of
@@ -195,7 +199,7 @@ class _Problem(eqx.Module):
             return {"force_N": clamp_force(tr["x_m"], p.F_rt, p.a, p.b, p.c)}
         if self.stage == "torque":
             return {"torque_Nm": brake_torque(tr["force_N"], p.mu, tr["r_eff_m"])}
-        s = _motor_states(p, tr["voltage_V"], tr["dt"], theta0, n_sub, self.method, None)
+        s = seed_motor_states(p, tr["voltage_V"], tr["dt"], theta0, n_sub, self.method, None)
         theta = s[:, 2] * (180.0 / jnp.pi)
         out = {"theta_deg": theta, "current_A": s[:, 0]}
         if self.stage == "chain":
@@ -214,13 +218,13 @@ class _Problem(eqx.Module):
 
 
 @eqx.filter_jit
-def _solve(problem: _Problem, u0, data, rtol, atol, max_steps):
+def _solve(problem: StageProblem, u0, data, rtol, atol, max_steps):
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     return optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
 
 
 @eqx.filter_jit
-def _evaluate(problem: _Problem, u, data):
+def _evaluate(problem: StageProblem, u, data):
     """Weighted residuals, predictions and the Jacobian at ``u``, in one compiled call."""
     return problem(u, data), problem.predict(u, data), jax.jacfwd(problem)(u, data)
 
@@ -252,7 +256,7 @@ class FitResult:
     condition_number
         Condition number of the column-scaled Jacobian at the optimum.
     metrics, trace_metrics
-        Pooled and per-trace metrics per channel (see :mod:`ewb_ident.metrics`).
+        Pooled and per-trace metrics per channel (see :mod:`ewb_ident.data.metrics`).
     noise, sigma
         Per trace and channel: the sensor-noise estimate from the data, and the noise
         level the final weights used (from the residuals), in the channel's unit.
@@ -264,7 +268,7 @@ class FitResult:
     acceptable
         Whether the fit passes the acceptance this tool states: a bell that is not
         flat (``b`` >= :data:`FLAT_BELL_B`) and force and torque percent errors within
-        the seed paper's 10 % (:data:`ewb_ident.metrics.SEED_ACCEPTANCE_PCT`). A channel
+        the seed paper's 10 % (:data:`ewb_ident.data.metrics.SEED_ACCEPTANCE_PCT`). A channel
         missing its noise floor by more than :data:`MISFIT_RATIO` is a warning, not a
         rejection (the diagnosis explains it).
     message
@@ -307,7 +311,7 @@ class FitResult:
     warnings: tuple[str, ...]
     predictions: tuple[dict[str, np.ndarray], ...] = field(repr=False)
     u: np.ndarray = field(repr=False)
-    problem: _Problem = field(repr=False)
+    problem: StageProblem = field(repr=False)
     data: dict = field(repr=False)
 
     @property
@@ -488,7 +492,7 @@ def held_viscous_friction(traces: Sequence[Trace], base: EWBParams) -> float:
 
     The nominal ``v``, or 20 % of the measured total damping ``(R v + kT kb)/R =
     kT/(K R)`` if that is lower (``K``: no-load speed per volt from
-    :func:`ewb_ident.initial.motor_lag`), so that ``kb`` stays positive for any motor.
+    :func:`ewb_ident.inference.initial.motor_lag`), so that ``kb`` stays positive for any motor.
     """
     gains = [abs(motor_lag(t["voltage_V"], t["theta_deg"], t.dt)["K"]) for t in traces]
     damping = float(base.kT) / (max(float(np.median(gains)), 1e-6) * float(base.R))
@@ -502,7 +506,7 @@ def _start_values(
     per_trace: Sequence[str],
     base: EWBParams,
 ) -> dict[str, float]:
-    """A start in the optimum's valley, from the data (see :mod:`ewb_ident.initial`).
+    """A start in the optimum's valley, from the data (see :mod:`ewb_ident.inference.initial`).
 
     Closed forms where a stage is linear in its parameters (gap polynomial, mu); a
     lag-plus-integrator grid for the motor; a straight-line grid for the bell. For the
@@ -642,7 +646,7 @@ class _Setup:
     per_trace: tuple[str, ...]
     base: EWBParams
     channels: tuple[tuple[str, ...], ...]
-    problem: _Problem
+    problem: StageProblem
     tdata: list[dict]
     noise: tuple[dict[str, float], ...]
     notes: tuple[str, ...]
@@ -687,7 +691,7 @@ def _setup(traces, stage, free, per_trace, fixed, integrator) -> _Setup:
                 f"{rho:.3g} > 1): the simulation diverges; use the exponential integrator"
             )
     channels = tuple(stage_channels(stage, t) for t in traces)
-    problem = _Problem(
+    problem = StageProblem(
         stage=stage,
         shared=tuple(n for n in free_t if n not in pt),
         per_trace=pt,
@@ -729,7 +733,7 @@ def fit(
     Parameters
     ----------
     traces
-        One :class:`~ewb_ident.traces.Trace` or several; several share every free
+        One :class:`~ewb_ident.data.trace.Trace` or several; several share every free
         parameter except those in ``per_trace``.
     stage
         ``"chain"`` (from voltage alone, every recorded channel), or one stage
@@ -980,7 +984,9 @@ def _finish(setup: _Setup, u, data, sigma, results, steps, max_steps) -> FitResu
     )
 
 
-def _to_u(problem: _Problem, values: Mapping[str, float], base: EWBParams, tdata) -> jnp.ndarray:
+def _to_u(
+    problem: StageProblem, values: Mapping[str, float], base: EWBParams, tdata
+) -> jnp.ndarray:
     """The unconstrained vector for start ``values`` (SI; ``"name[k]"`` per trace)."""
     defaults = base.as_dict()
     u = [PARAMS[n].to_unconstrained(values.get(n, defaults.get(n))) for n in problem.shared]

@@ -1,11 +1,11 @@
 """Priors of the posterior sampler: physical, weakly informative, read from a TOML file.
 
-The defaults live in ``ewb_ident/priors.toml`` (shipped with the package; each entry
+The defaults live in ``ewb_ident/inference/priors.toml`` (shipped with the package; each entry
 says why it is what it is). :func:`load_priors` reads them, and a user's file on top:
 a table in the user's file replaces the default table of that parameter.
 
 Every prior is on the parameter's physical value (SI units). The sampler works in the
-unconstrained coordinates of :mod:`ewb_ident.params` and adds the log-Jacobian of the
+unconstrained coordinates of :mod:`ewb_ident.model.params` and adds the log-Jacobian of the
 transform, so the prior a user writes here is the prior the posterior uses.
 """
 
@@ -22,7 +22,7 @@ from typing import Any, Literal
 import jax.numpy as jnp
 import numpy as np
 
-from .params import PARAMS, ParamInfo
+from ewb_ident.model.params import PARAMS, ParamInfo
 
 Dist = Literal["normal", "lognormal", "beta", "uniform", "loguniform", "flat"]
 
@@ -58,7 +58,7 @@ class Prior:
     Parameters
     ----------
     name
-        Parameter name (as in :data:`ewb_ident.params.PARAMS`).
+        Parameter name (as in :data:`ewb_ident.model.params.PARAMS`).
     dist
         Distribution (see ``priors.toml``).
     args
@@ -225,7 +225,7 @@ def param_info(name: str) -> ParamInfo:
     """
     if name in PARAMS:
         return PARAMS[name]
-    from .mechanisms import mechanism_param
+    from ewb_ident.mechanisms import mechanism_param
 
     return mechanism_param(name)
 
@@ -244,12 +244,15 @@ def _read_toml(text: str, where: str) -> dict[str, Any]:
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
-        raise PriorError(f"{where}: not valid TOML ({err}); see ewb_ident/priors.toml") from err
+        raise PriorError(
+            f"{where}: not valid TOML ({err}); see ewb_ident/inference/priors.toml"
+        ) from err
 
 
 def default_prior_text() -> str:
     """The text of the default prior file (to copy and edit)."""
-    return resources.files("ewb_ident").joinpath("priors.toml").read_text(encoding="utf-8")
+    folder = resources.files("ewb_ident.inference")
+    return folder.joinpath("priors.toml").read_text(encoding="utf-8")
 
 
 def load_priors(path: str | Path | Mapping[str, Any] | None = None) -> dict[str, Prior]:
@@ -266,8 +269,8 @@ def load_priors(path: str | Path | Mapping[str, Any] | None = None) -> dict[str,
     PriorError
         The file is missing, not TOML, or a table is wrong (the message says which).
     """
-    tables = _read_toml(default_prior_text(), "ewb_ident/priors.toml")
-    out = {n: parse_prior(n, t, "ewb_ident/priors.toml") for n, t in tables.items()}
+    tables = _read_toml(default_prior_text(), "ewb_ident/inference/priors.toml")
+    out = {n: parse_prior(n, t, "ewb_ident/inference/priors.toml") for n, t in tables.items()}
     if path is None:
         return out
     if isinstance(path, Mapping):

@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .least_squares import FitResult, fit, motor_combination_values
-from .params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
-from .simulate import simulate_chain
-from .traces import Trace
+from ewb_ident.data.trace import Trace
+from ewb_ident.inference.least_squares import FitResult, fit, motor_combination_values
+from ewb_ident.model.integrate import simulate_chain
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 
 #: The seed's operating point: its open-loop apply, 4 V for 0.25 s from rest (then 0 V),
 #: logged at 200 Hz; the torque is read while the brake holds, at t = 1.0 s.
@@ -40,7 +40,7 @@ DEFAULT_TOLERANCE = 0.01
 CHANGED = 0.95
 
 #: Without ``current_A`` the motor's ``L``, ``kb`` and ``M`` are fitted as effective
-#: values with ``R`` and ``v`` held (:func:`ewb_ident.least_squares.default_free`): what
+#: values with ``R`` and ``v`` held (:func:`ewb_ident.inference.least_squares.default_free`): what
 #: the recordings identify, and what a change is reported for, are these combinations.
 MOTOR_COMBINATIONS: dict[str, str] = {
     "motor_gain_rad_per_V_s": "rad/(V*s)",

@@ -4,7 +4,7 @@ The residual of every fitted channel is divided by a per-sample noise level give
 caller (the sensor noise floor, with the input noise a teacher-forced stage propagates),
 so that fits of the same stages with and without a mechanism have comparable costs.
 Parameters are optimised in unconstrained O(1) coordinates: the base parameters as
-declared in :data:`ewb_ident.params.PARAMS`, each mechanism's as it declares them.
+declared in :data:`ewb_ident.model.params.PARAMS`, each mechanism's as it declares them.
 The solver is Levenberg-Marquardt (:func:`levenberg_marquardt`) from the best of a few
 starting points.
 
@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..params import MODEL_PARAMS, PARAMS, EWBParams
-from ..traces import Trace
-from .base import AbstractMechanism
-from .model import n_substeps, predict
+from ewb_ident.data.trace import Trace
+from ewb_ident.mechanisms.base import AbstractMechanism
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
+from ewb_ident.model.predict import n_substeps, predict
 
 #: Arrays are padded to a multiple of this many samples.
 PAD = 256
@@ -50,7 +50,7 @@ def padded_length(n: int) -> int:
     return int(-(-n // PAD) * PAD)
 
 
-def _pad(y: np.ndarray, n_pad: int) -> np.ndarray:
+def pad_to(y: np.ndarray, n_pad: int) -> np.ndarray:
     y = np.asarray(y, dtype=float)
     return np.concatenate([y, np.full(n_pad - y.size, y[-1])]) if n_pad > y.size else y
 
@@ -75,8 +75,7 @@ def slow_smooth(y: np.ndarray, sigma: float, width: int = 5, fast: int = 1) -> n
     return a * ys + (1.0 - a) * yf
 
 
-from ..locate import smooth  # noqa: E402
-from ..metrics import noise_sigma  # noqa: E402
+from ewb_ident.data.metrics import noise_sigma, smooth  # noqa: E402
 
 
 def make_data(
@@ -120,21 +119,21 @@ def make_data(
     n_pad = padded_length(n)
     mask = np.zeros(n_pad)
     mask[:n] = 1.0
-    meas = {c: jnp.asarray(_pad(trace[c], n_pad)) for c in COLUMNS if trace.has(c)}
+    meas = {c: jnp.asarray(pad_to(trace[c], n_pad)) for c in COLUMNS if trace.has(c)}
     drive = {}
     if x_model is not None:
-        drive["x_model"] = jnp.asarray(_pad(np.asarray(x_model, dtype=float), n_pad))
+        drive["x_model"] = jnp.asarray(pad_to(np.asarray(x_model, dtype=float), n_pad))
     elif trace.has("x_m") and x_play_m > 0:
         x_noise = noise_sigma(trace["x_m"])
         x_drive = slow_smooth(trace["x_m"], x_noise, width=5 * x_smooth, fast=x_smooth)
-        drive["x_m"] = jnp.asarray(_pad(x_drive, n_pad))
+        drive["x_m"] = jnp.asarray(pad_to(x_drive, n_pad))
     if trace.has("theta_deg"):
         s_th = float(theta_noise) if theta_noise is not None else 0.0
-        drive["theta_deg"] = jnp.asarray(_pad(slow_smooth(trace["theta_deg"], s_th), n_pad))
+        drive["theta_deg"] = jnp.asarray(pad_to(slow_smooth(trace["theta_deg"], s_th), n_pad))
     w = {}
     for ch, s in sigma.items():
         s = np.broadcast_to(np.asarray(s, dtype=float), (n,))
-        w[ch] = jnp.asarray(_pad(1.0 / s, n_pad) * mask)
+        w[ch] = jnp.asarray(pad_to(1.0 / s, n_pad) * mask)
     return {
         "meas": meas,
         "drive": drive,
@@ -191,12 +190,12 @@ class AugProblem(eqx.Module):
 
 
 @eqx.filter_jit
-def _residuals(problem: AugProblem, u, data):
+def residuals(problem: AugProblem, u, data):
     return problem(u, data)
 
 
 @eqx.filter_jit
-def _res_jac(problem: AugProblem, u, data):
+def residuals_and_jacobian(problem: AugProblem, u, data):
     """Residuals, their Jacobian (forward mode) and the predictions, in one pass."""
 
     def f(v):
@@ -210,8 +209,8 @@ def _res_jac(problem: AugProblem, u, data):
     return r, J, pred
 
 
-def _jacobian(problem: AugProblem, u, data):
-    return _res_jac(problem, u, data)[1]
+def jacobian(problem: AugProblem, u, data):
+    return residuals_and_jacobian(problem, u, data)[1]
 
 
 @dataclass(frozen=True)
@@ -242,7 +241,7 @@ def levenberg_marquardt(
     or the step relative to ``u``, falls below the tolerances, or the gradient vanishes.
     """
     u = np.asarray(u0, dtype=float)
-    r, J, _ = _res_jac(problem, jnp.asarray(u), data)
+    r, J, _ = residuals_and_jacobian(problem, jnp.asarray(u), data)
     r, J = np.asarray(r), np.asarray(J)
     cost = float(r @ r)
     if not np.isfinite(cost):
@@ -264,13 +263,13 @@ def levenberg_marquardt(
             lam, nu = lam * nu, nu * 2
             continue
         u_new = u + delta
-        r_new = np.asarray(_residuals(problem, jnp.asarray(u_new), data))
+        r_new = np.asarray(residuals(problem, jnp.asarray(u_new), data))
         with np.errstate(over="ignore", invalid="ignore"):
             cost_new = float(r_new @ r_new)
         predicted = float(-2.0 * g @ delta - delta @ A @ delta)
         rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
-            r_j, J_j, _ = _res_jac(problem, jnp.asarray(u_new), data)
+            r_j, J_j, _ = residuals_and_jacobian(problem, jnp.asarray(u_new), data)
             J_j = np.asarray(J_j)
             if not np.all(np.isfinite(J_j)):  # a step to where the model has no slope
                 lam, nu = lam * nu, nu * 2.0
@@ -367,7 +366,7 @@ def fit_mechanisms(
     stages
         ``("chain",)`` or teacher-forced stage names.
     free
-        Base parameters to vary (names of :data:`ewb_ident.params.PARAMS`).
+        Base parameters to vary (names of :data:`ewb_ident.model.params.PARAMS`).
     mechanisms
         Mechanisms with their starting values.
     channels
@@ -415,7 +414,7 @@ def fit_mechanisms(
         for combo in combos:
             u = list(u_base)
             for m, vals in zip(mechs, combo, strict=True):
-                u += [_to_u(i, vals[i.name]) for i in m.param_info()]
+                u += [clipped_to_u(i, vals[i.name]) for i in m.param_info()]
             us.append(u)
             group.append(g)
     us = np.array(us, dtype=float)
@@ -423,7 +422,7 @@ def fit_mechanisms(
         with np.errstate(over="ignore", invalid="ignore"):
             costs = np.array(
                 [
-                    float(np.sum(np.asarray(_residuals(problem, jnp.asarray(u), data)) ** 2))
+                    float(np.sum(np.asarray(residuals(problem, jnp.asarray(u), data)) ** 2))
                     for u in us
                 ]
             )
@@ -451,7 +450,7 @@ def fit_mechanisms(
     return _result(problem, best.u, data, best.converged, mechs)
 
 
-def _to_u(info, value: float) -> float:
+def clipped_to_u(info, value: float) -> float:
     if info.transform == "logit":
         lo, hi = info.lower, info.upper
         value = min(max(value, lo + 1e-6 * (hi - lo)), hi - 1e-6 * (hi - lo))
@@ -462,7 +461,7 @@ def _to_u(info, value: float) -> float:
 
 def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
     n = int(data["n"])
-    r, J, pred_all = _res_jac(problem, jnp.asarray(u), data)
+    r, J, pred_all = residuals_and_jacobian(problem, jnp.asarray(u), data)
     r, J = np.asarray(r), np.asarray(J)
     rss = float(np.sum(r * r))
     nch = len(problem.channels)

@@ -4,8 +4,8 @@ add it to the model, refit, and show the fit improve.
 Steps (:func:`diagnose`)
 ------------------------
 1. **Baseline.** Each stage is fitted teacher-forced from its measured input
-   (:func:`ewb_ident.least_squares.fit`), and the whole chain from the voltage.
-2. **Locate** (:mod:`ewb_ident.locate`). Each stage's residual is scored against its
+   (:func:`ewb_ident.inference.least_squares.fit`), and the whole chain from the voltage.
+2. **Locate** (:mod:`ewb_ident.diagnosis.locate`). Each stage's residual is scored against its
    noise floor, phase by phase, with a whiteness test; a stage with a flagged cell is
    *located*. Nothing located: the verdict is ``none``.
 3. **Explain.** Every catalog mechanism (:mod:`ewb_ident.mechanisms`) that acts on a
@@ -36,7 +36,7 @@ Steps (:func:`diagnose`)
    remaining candidates are refitted on top of it, and so on while a stage is still
    located (at most :data:`MAX_MECHANISMS`).
 4. **Unknown physics.** A stage still located afterwards gets a sparse generic
-   correction (:mod:`ewb_ident.mechanisms.correction`), reported as
+   correction (:mod:`ewb_ident.diagnosis.correction`), reported as
    ``unexplained_<stage>`` with the terms it depends on. With no catalog finding the
    verdict is ``unexplained``.
 5. **Show it.** The whole chain is refitted with the selected mechanisms, one added at a
@@ -58,9 +58,17 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from .least_squares import default_free
-from .least_squares import fit as fit_stage
-from .locate import (
+from ewb_ident.data.metrics import channel_metrics, noise_sigma, sensor_noise
+from ewb_ident.data.trace import CHANNELS, STAGE_COLUMNS, Trace
+from ewb_ident.diagnosis.correction import (
+    FEATURES,
+    GenericCorrection,
+    available_features,
+    forward_select,
+    signals,
+    with_signals,
+)
+from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     PHASES,
     STAGE_WORDS,
@@ -73,31 +81,23 @@ from .locate import (
     stage_excess,
     summary_text,
 )
-from .mechanisms import AbstractMechanism, variants
-from .mechanisms.base import fmt_pm
-from .mechanisms.correction import (
-    FEATURES,
-    GenericCorrection,
-    available_features,
-    forward_select,
-    signals,
-    with_signals,
-)
-from .mechanisms.fitting import (
+from ewb_ident.inference.augmented import (
     AugFit,
     AugProblem,
-    _jacobian,
-    _residuals,
-    _to_u,
+    clipped_to_u,
     fit_mechanisms,
+    jacobian,
     make_data,
+    residuals,
 )
-from .mechanisms.model import STAGE_OUTPUTS, n_substeps
-from .metrics import channel_metrics, noise_sigma, sensor_noise
-from .params import PARAMS, EWBParams
-from .physics import clamp_force
-from .simulate import _motor_states
-from .traces import CHANNELS, STAGE_COLUMNS, Trace
+from ewb_ident.inference.least_squares import default_free
+from ewb_ident.inference.least_squares import fit as fit_stage
+from ewb_ident.mechanisms import AbstractMechanism, variants
+from ewb_ident.mechanisms.base import fmt_pm
+from ewb_ident.model.integrate import seed_motor_states
+from ewb_ident.model.params import PARAMS, EWBParams
+from ewb_ident.model.physics import clamp_force
+from ewb_ident.model.predict import STAGE_OUTPUTS, n_substeps
 
 #: A mechanism must lower the BIC by at least this much.
 BIC_THRESHOLD = 10.0
@@ -336,13 +336,6 @@ class DiagnosisResult:
             "timings_s": self.timings,
         }
 
-    def figures(self) -> dict[str, bytes]:
-        """The diagnosis figures as PNG bytes, keyed by file name (see
-        :mod:`ewb_ident.figures`)."""
-        from .figures import figure_bytes
-
-        return figure_bytes(self)
-
     def summary(self) -> str:
         """A short plain-language summary (for the terminal)."""
         lines = [f"diagnosis of {self.trace_name}: {self.verdict}"]
@@ -373,7 +366,7 @@ class DiagnosisResult:
 
 
 def _locate_const(name: str) -> float:
-    from . import locate
+    from ewb_ident.diagnosis import locate
 
     return float(getattr(locate, name))
 
@@ -515,7 +508,7 @@ class _Session:
     def base_fits_motor_theta(self, v: Mapping[str, float]) -> np.ndarray:
         """The motor stage's angle (degrees) from the logged voltage, baseline values."""
         p = EWBParams(**{k: v[k] for k in EWBParams().as_dict()})
-        states = _motor_states(
+        states = seed_motor_states(
             p,
             jnp.asarray(self.trace["voltage_V"]),
             self.trace.dt,
@@ -632,7 +625,8 @@ def _chain_metrics(trace: Trace, f: AugFit) -> dict[str, dict[str, float | None]
 
 
 def _safe_fit(trace: Trace, stage: str, messages: list[str]):
-    """The baseline fit of one stage by :func:`ewb_ident.least_squares.fit`, or ``None`` (and a
+    """The baseline fit of one stage by :func:`ewb_ident.inference.least_squares.fit`, or
+    ``None`` (and a
     message) when it fails numerically: the diagnosis then starts from the seed values."""
     try:
         return fit_stage(trace, stage=stage)
@@ -655,7 +649,7 @@ def _evidence(
     ``explained_fraction`` is the share of the excess of ``f0``'s residual over the
     noise that ``f1`` removes; the noise expectation of the weighted residual sum of
     squares is ``sum_ch n c_ch^2`` with ``c_ch`` the residual's own white-noise level per
-    channel (:func:`ewb_ident.locate.floor_scale`), so a noise floor that is off by some
+    channel (:func:`ewb_ident.diagnosis.locate.floor_scale`), so a noise floor that is off by some
     per cent does not distort it.
     """
     n = f0.n
@@ -1268,10 +1262,10 @@ def _generic(ses: _Session, stage: str, selected, current, threshold):
     u = [float(PARAMS[n].to_unconstrained(f_cur.values[n])) for n in problem.free]
     for m in mechs:
         vals = m.values()
-        u += [_to_u(i, vals[i.name]) for i in m.param_info()]
+        u += [clipped_to_u(i, vals[i.name]) for i in m.param_info()]
     u = jnp.asarray(np.asarray(u))
-    r = np.asarray(_residuals(problem, u, ses.data))
-    J = np.asarray(_jacobian(problem, u, ses.data))
+    r = np.asarray(residuals(problem, u, ses.data))
+    J = np.asarray(jacobian(problem, u, ses.data))
     m_terms = len(feats)
     sel = forward_select(r, J[:, :-m_terms], J[:, -m_terms:], feats, threshold=threshold)
     if not sel.features:

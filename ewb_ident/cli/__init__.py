@@ -146,7 +146,7 @@ def _read(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=No
     import dataclasses
     import math
 
-    from .traces import read_trace
+    from ewb_ident.data.trace import read_trace
 
     if r_eff is not None and not (math.isfinite(r_eff) and 0.02 <= r_eff <= 0.5):
         _fail(f"--r-eff must be a pad radius within 0.02 to 0.5 m, got {r_eff!r}")
@@ -167,8 +167,8 @@ def _read(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=No
 
 
 def _bad_input_errors() -> tuple[type[Exception], ...]:
-    from .least_squares import FitError
-    from .traces import TraceError
+    from ewb_ident.data.trace import TraceError
+    from ewb_ident.inference.least_squares import FitError
 
     return (TraceError, FitError)
 
@@ -207,10 +207,10 @@ def fit(
         _corrected_options(traces, stage, free, per_trace, fix, integrator)
         _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
         return
-    from .least_squares import fit as run_fit
-    from .outputs import write_json
-    from .report import fit_summary
-    from .simulate import EXPONENTIAL, SEED_HEUN
+    from ewb_ident.data.outputs import write_json
+    from ewb_ident.inference.least_squares import fit as run_fit
+    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
+    from ewb_ident.reporting.summaries import fit_summary
 
     if integrator not in ("exponential", "heun"):
         _fail(f"--integrator must be exponential or heun, got {integrator!r}")
@@ -279,9 +279,9 @@ def _mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[st
 
 
 def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff) -> None:
-    from .diagnose import DiagnoseError, fit_corrected
-    from .outputs import write_json
-    from .report import corrected_summary
+    from ewb_ident.data.outputs import write_json
+    from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected
+    from ewb_ident.reporting.summaries import corrected_summary
 
     try:
         (tr,) = _read([trace], ("chain",), mapping, fill_gaps, no_unit_check, r_eff)
@@ -325,9 +325,9 @@ def simulate(
 
     import numpy as np
 
-    from . import rig
-    from .outputs import write_json
-    from .traces import write_trace
+    from ewb_ident import rig
+    from ewb_ident.data.outputs import write_json
+    from ewb_ident.data.trace import write_trace
 
     if out.suffix.lower() not in (".csv", ".parquet"):
         _fail(f"{out}: write a .csv or .parquet trace")
@@ -345,7 +345,7 @@ def simulate(
         _fail(f"unknown effect {unknown[0]!r}; the catalog is {', '.join(rig.EFFECTS)}")
     fitted = {}
     if params is not None:
-        from .validate import ValidateError, load_params
+        from ewb_ident.inference.validate import ValidateError, load_params
 
         try:
             fitted = load_params(params).as_dict()
@@ -400,7 +400,10 @@ def sample(
     ] = None,
     priors: Annotated[
         Path | None,
-        typer.Option(help="TOML file of priors overriding the defaults (ewb_ident/priors.toml)."),
+        typer.Option(
+            help="TOML file of priors overriding the defaults "
+            "(ewb_ident/inference/priors.toml)."
+        ),
     ] = None,
     noise: Annotated[
         str, typer.Option(help="auto (AR(1) where the residuals are correlated), white or ar1.")
@@ -441,13 +444,13 @@ def sample(
     import sys
     import time
 
-    from .diagnose import DiagnoseError
-    from .outputs import atomic_write, json_text
-    from .posterior import SampleError, sample_corrected
-    from .posterior import sample as run_sample
-    from .priors import PriorError
-    from .report import posterior_summary
-    from .simulate import EXPONENTIAL, SEED_HEUN
+    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected
+    from ewb_ident.inference.posterior import SampleError, sample_corrected
+    from ewb_ident.inference.posterior import sample as run_sample
+    from ewb_ident.inference.priors import PriorError
+    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
+    from ewb_ident.reporting.summaries import posterior_summary
 
     if integrator not in ("exponential", "heun"):
         _fail(f"--integrator must be exponential or heun, got {integrator!r}")
@@ -499,7 +502,7 @@ def sample(
                 **common,
             )
         else:
-            result = sample_corrected(trs[0], mechanisms, **common)
+            result = sample_corrected(trs[0], fit_corrected(trs[0], mechanisms), **common)
     except (*_bad_input_errors(), SampleError, PriorError, DiagnoseError) as err:
         _fail(str(err))
     finally:
@@ -538,8 +541,8 @@ def study(
     _check_out(out)
     from rich.progress import Progress
 
-    from .outputs import atomic_write
-    from .studies import StudyError, load_study, run_script, run_study, summarise
+    from ewb_ident.data.outputs import atomic_write
+    from ewb_ident.study import StudyError, load_study, run_script, run_study, summarise
 
     try:
         spec = load_study(definition)
@@ -589,21 +592,21 @@ def report(
     bell curve, parameters with 90 % intervals, errors beside the seed's, MCMC
     diagnostics, and the diagnosis of missing physics."""
     _check_out(out)
-    from .least_squares import fit as run_fit
-    from .validation_report import build_report, write_report
+    from ewb_ident.inference.least_squares import fit as run_fit
+    from ewb_ident.reporting.html import build_report, write_report
 
     post = diag = None
     try:
         trs = _read(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
         result = run_fit(trs, stage=stage)
         if posterior:
-            from .posterior import sample as run_sample
+            from ewb_ident.inference.posterior import sample as run_sample
 
             typer.echo("sampling the posterior (emcee, two ensembles) ...")
             post = run_sample(trs, stage=stage, seed=seed)
         if diagnosis and len(trs) == 1:
-            from .diagnose import DiagnoseError
-            from .diagnose import diagnose as run_diagnose
+            from ewb_ident.diagnosis.diagnose import DiagnoseError
+            from ewb_ident.diagnosis.diagnose import diagnose as run_diagnose
 
             typer.echo("diagnosing missing physics ...")
             try:
@@ -660,13 +663,13 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
         return None, "its posterior was not run (--no-posterior)"
     if stage != "chain":
         return None, f"its posterior is of the whole chain, and this report is of stage {stage}"
-    from .diagnose import DiagnoseError
-    from .posterior import SampleError, sample_corrected
+    from ewb_ident.diagnosis.diagnose import DiagnoseError
+    from ewb_ident.inference.posterior import SampleError, sample_corrected
 
     mechs = diag.corrected_mechanisms()
     typer.echo(f"sampling the posterior of the corrected model ({', '.join(mechs)}) ...")
     try:
-        return sample_corrected(trs[0], mechs, corrected=diag.corrected, seed=seed), None
+        return sample_corrected(trs[0], diag.corrected, seed=seed), None
     except (DiagnoseError, SampleError) as err:
         typer.echo(f"no corrected posterior: {err}")
         return None, f"its posterior could not be run ({err})"
@@ -694,9 +697,9 @@ def diagnose(
     """Locate where the model misses the recording, name the missing physics, add it and
     refit; writes OUT/diagnosis.json and figures, and prints a summary."""
     _check_out(out)
-    from .diagnose import DiagnoseError
-    from .diagnose import diagnose as run_diagnose
-    from .figures import write_diagnosis
+    from ewb_ident.diagnosis.diagnose import DiagnoseError
+    from ewb_ident.diagnosis.diagnose import diagnose as run_diagnose
+    from ewb_ident.reporting.figures import write_diagnosis
 
     if not bic_threshold > 0:
         _fail(f"--bic-threshold must be a positive number, got {bic_threshold!r}")
@@ -728,8 +731,8 @@ def compare(
     90 % intervals and P(changed), and the brake torque at the seed's operating point;
     writes OUT/compare.json. Exits 3 when a fit did not converge."""
     _check_out(out)
-    from .compare import compare as run_compare
-    from .outputs import write_json
+    from ewb_ident.data.outputs import write_json
+    from ewb_ident.inference.compare import compare as run_compare
 
     try:
         trs_old = _read(old, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
@@ -759,10 +762,10 @@ def validate(
     error against the seed's 10 % acceptance and the trace's noise floor; writes
     OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
     _check_out(out)
-    from .outputs import atomic_write, json_text
-    from .report import validation_summary
-    from .validate import ValidateError, load_params, validation_figure
-    from .validate import validate as run_validate
+    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.inference.validate import ValidateError, load_params, validation_figure
+    from ewb_ident.inference.validate import validate as run_validate
+    from ewb_ident.reporting.summaries import validation_summary
 
     try:
         p = load_params(params)
@@ -804,7 +807,7 @@ def _interrupted(signum, frame) -> None:
     import os
     import signal
 
-    from .outputs import remove_pending
+    from ewb_ident.data.outputs import remove_pending
 
     remove_pending()
     sys.stderr.write("interrupted\n")

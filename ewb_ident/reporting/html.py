@@ -23,13 +23,18 @@ from typing import Any
 
 import numpy as np
 
-from .figures import PHASE_COLOURS, legend_with_phases, shade_phases
-from .least_squares import FitResult
-from .metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
-from .outputs import atomic_write
-from .params import SEED
-from .priors import param_info
-from .traces import Trace
+from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
+from ewb_ident.data.outputs import atomic_write
+from ewb_ident.data.trace import Trace
+from ewb_ident.inference.least_squares import FitResult
+from ewb_ident.inference.priors import param_info
+from ewb_ident.model.params import SEED
+from ewb_ident.reporting.figures import (
+    PHASE_COLOURS,
+    figure_bytes,
+    legend_with_phases,
+    shade_phases,
+)
 
 CHANNEL_LABELS = {
     "voltage_V": "voltage (V)",
@@ -61,7 +66,7 @@ def _png(fig) -> bytes:
 
 
 def _phases(trace: Trace) -> np.ndarray:
-    from .locate import phase_labels
+    from ewb_ident.diagnosis.locate import phase_labels
 
     return phase_labels(trace)
 
@@ -262,13 +267,13 @@ def build_report(
     fit
         A whole-chain or stage fit of those traces.
     posterior
-        Optional :class:`~ewb_ident.posterior.PosteriorResult` (its ``to_summary_json()``
+        Optional :class:`~ewb_ident.inference.posterior.PosteriorResult` (its ``to_summary_json()``
         feeds the parameter table and the MCMC section; its pair plot is included).
     diagnosis
-        Optional :class:`~ewb_ident.diagnose.DiagnosisResult` (its ``to_json()``).
+        Optional :class:`~ewb_ident.diagnosis.diagnose.DiagnosisResult` (its ``to_json()``).
     corrected_posterior
         Optional posterior of the corrected model
-        (:func:`~ewb_ident.posterior.sample_corrected`): its HDIs are the corrected
+        (:func:`~ewb_ident.inference.posterior.sample_corrected`): its HDIs are the corrected
         model's intervals; without it they are linearised.
     corrected_note
         Why there is no corrected posterior (printed in its place).
@@ -735,9 +740,8 @@ def _diagnosis_section(doc: Mapping[str, Any], diagnosis: Any, figures: dict[str
                 left=3,
             )
         )
-    figs = getattr(diagnosis, "figures", None)
-    if callable(figs):
-        for name, data in figs().items():
+    if diagnosis is not None:
+        for name, data in figure_bytes(diagnosis).items():
             figures[name] = data
             out.append(_img(name, data, name))
     return "".join(out)

@@ -67,7 +67,7 @@ from typing import Any, Literal, NoReturn
 import numpy as np
 import pandas as pd
 
-from .outputs import atomic_write
+from ewb_ident.data.outputs import atomic_write
 
 #: Columns of the trace format v1, with their SI unit.
 COLUMNS: dict[str, str] = {

@@ -29,7 +29,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 if TYPE_CHECKING:
-    from .diagnose import DiagnosisResult, Finding
+    from ewb_ident.diagnosis.diagnose import DiagnosisResult, Finding
 
 #: One phase palette for every figure, the report's and the diagnosis's.
 PHASE_COLOURS = {
@@ -56,7 +56,7 @@ _SCALE = {"x_m": 1e3}
 
 
 def shade_phases(ax, t: np.ndarray, labels: np.ndarray) -> None:
-    """Shade each phase of the apply (:func:`ewb_ident.locate.phase_labels`) behind the
+    """Shade each phase of the apply (:func:`ewb_ident.diagnosis.locate.phase_labels`) behind the
     curves of ``ax`` (time axis ``t``, s)."""
     start = 0
     for k in range(1, t.size + 1):
@@ -324,7 +324,7 @@ def write_diagnosis(
     figures
         Whether to draw the figures too.
     """
-    from .outputs import atomic_write, json_text
+    from ewb_ident.data.outputs import atomic_write, json_text
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

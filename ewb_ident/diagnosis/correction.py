@@ -24,8 +24,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..params import ParamInfo
-from .base import AbstractMechanism
+from ewb_ident.mechanisms.base import AbstractMechanism
+from ewb_ident.model.params import ParamInfo
 
 #: Library terms per stage: name -> words.
 FEATURES: dict[str, dict[str, str]] = {
@@ -75,7 +75,7 @@ _UNIT = {"motor": "N*m", "gap": "m", "force": "N", "torque": "N*m"}
 
 def signals(trace, labels=None) -> dict[str, np.ndarray]:
     """Data-derived signals the library terms use (unit size, NumPy arrays)."""
-    from ..locate import disc_angle, motion_rate
+    from ewb_ident.diagnosis.locate import disc_angle, motion_rate
 
     n = trace.n
     t = trace.time_s - trace.time_s[0]
@@ -315,9 +315,9 @@ def forward_select(
 
 def with_signals(data: Mapping[str, Any], trace) -> dict[str, Any]:
     """``data`` with the library's signals and scales added (padded like the data)."""
-    from .fitting import _pad
+    from ewb_ident.inference.augmented import pad_to
 
     n_pad = int(np.asarray(data["t"]).shape[0])
-    sig = {k: jnp.asarray(_pad(v, n_pad)) for k, v in signals(trace).items()}
+    sig = {k: jnp.asarray(pad_to(v, n_pad)) for k, v in signals(trace).items()}
     sc = {k: jnp.asarray(v) for k, v in scales(trace).items()}
     return dict(data) | {"signals": sig, "scales": sc}

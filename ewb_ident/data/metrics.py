@@ -110,3 +110,13 @@ def sensor_noise(y: ArrayLike) -> float:
     """The noise level a channel is judged against: :func:`noise_sigma`, floored at
     :func:`noise_floor` (in the channel's unit)."""
     return max(noise_sigma(y), noise_floor(y))
+
+
+def smooth(y: np.ndarray, width: int) -> np.ndarray:
+    """Centred moving average over ``width`` samples (odd), ends held."""
+    width = max(1, int(width) | 1)
+    if width == 1:
+        return np.asarray(y, float).copy()
+    pad = width // 2
+    yp = np.concatenate([np.full(pad, y[0]), y, np.full(pad, y[-1])])
+    return np.convolve(yp, np.ones(width) / width, mode="valid")

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from .least_squares import FitResult
-from .metrics import SEED_PERCENT_ERROR
-from .params import PARAMS, SEED
+from ewb_ident.data.metrics import SEED_PERCENT_ERROR
+from ewb_ident.inference.least_squares import FitResult
+from ewb_ident.model.params import PARAMS, SEED
 
 
 def _fmt(value: float | None, digits: int = 4) -> str:
@@ -50,7 +50,7 @@ def fit_summary(result: FitResult) -> str:
         )
     lines.append(
         "  (NRMSE: RMSE over the channel's range; % error: relative L2 error, "
-        "see ewb_ident.metrics)"
+        "see ewb_ident.data.metrics)"
     )
     if result.warnings:
         lines.append("")
@@ -59,7 +59,8 @@ def fit_summary(result: FitResult) -> str:
 
 
 def posterior_summary(result) -> str:
-    """A short plain-text summary of a posterior (:class:`ewb_ident.posterior.PosteriorResult`):
+    """A short plain-text summary of a posterior
+    (:class:`ewb_ident.inference.posterior.PosteriorResult`):
     intervals, diagnostics, the a-b-c-mu correlations, identifiability and warnings."""
     d = result.diagnostics
     pct = f"{100 * result.hdi_prob:g} %"
@@ -98,7 +99,7 @@ def posterior_summary(result) -> str:
 
 
 def corrected_summary(result) -> str:
-    """Plain text of a fit with mechanisms (:class:`ewb_ident.diagnose.CorrectedFit`):
+    """Plain text of a fit with mechanisms (:class:`ewb_ident.diagnosis.diagnose.CorrectedFit`):
     baseline beside corrected values, errors before and after, evidence, warnings."""
     lines = [
         f"fit of {result.trace_name} with {', '.join(result.mechanisms)} (whole chain) - "
@@ -118,7 +119,7 @@ def corrected_summary(result) -> str:
 
 
 def validation_summary(result, params_label: str) -> str:
-    """Plain text of a validation (:class:`ewb_ident.validate.ValidationResult`)."""
+    """Plain text of a validation (:class:`ewb_ident.inference.validate.ValidationResult`)."""
     lines = [f"validation of {params_label} on {result.trace_name}: {result.verdict}"]
     lines.append(f"  {result.words}")
     for ch, m in result.metrics.items():

@@ -2,7 +2,7 @@
 
 This module is the *truth generator* for tests, datasets and studies. Its physics and
 its integrator are written here, independently of the fitting model (it imports only
-:mod:`ewb_ident.traces`), so that a test that fits a generated trace checks the model
+:mod:`ewb_ident.data.trace`), so that a test that fits a generated trace checks the model
 against something it does not share code with.
 
 The rig
@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ewb_ident.traces import Trace
+from ewb_ident.data.trace import Trace
 
 __all__ = [
     "EFFECTS",

@@ -7,7 +7,7 @@ every recorded channel:
 
 * against the seed paper's acceptance: force and torque percent error within 10 %;
 * against the trace's own noise floor: the residual RMS of each channel over its sensor
-  noise (estimated from the data, :func:`ewb_ident.metrics.noise_sigma`). Within
+  noise (estimated from the data, :func:`ewb_ident.data.metrics.noise_sigma`). Within
   :data:`NOISE_RATIO` the model explains the recording down to its noise.
 
 Only the start angle is taken from the new trace (the pinion rests where the recording
@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
-from .params import MODEL_PARAMS, EWBParams
-from .simulate import simulate_chain
-from .traces import CHANNELS, Trace, TraceError
+from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
+from ewb_ident.data.trace import CHANNELS, Trace, TraceError
+from ewb_ident.model.integrate import simulate_chain
+from ewb_ident.model.params import MODEL_PARAMS, EWBParams
 
 #: Residual RMS up to this many times the sensor noise counts as "at the noise floor".
 NOISE_RATIO = 1.5

@@ -3,13 +3,14 @@
 :func:`predict` evaluates one teacher-forced stage (its input is the measured channel,
 corrected by any sensor mechanism on it) or the whole chain from the voltage, calling
 each mechanism at its hook (see :mod:`ewb_ident.mechanisms.base`). Without mechanisms
-it gives exactly the seed model of :mod:`ewb_ident.physics` / :mod:`ewb_ident.simulate`.
+it gives exactly the seed model of :mod:`ewb_ident.model.physics` /
+:mod:`ewb_ident.model.integrate`.
 
 The motor with mechanisms
 -------------------------
 :func:`motor_states` splits each sub-step (at most :data:`MAX_SUBSTEP_S`) into the
 exact linear flow of the armature and rotor (``exp(A h)``, as in
-:mod:`ewb_ident.simulate`) with the voltage the ``voltage`` hooks let through, followed
+:mod:`ewb_ident.model.integrate`) with the voltage the ``voltage`` hooks let through, followed
 by an implicit (backward Euler) step of the friction-like torques of the
 ``motor_friction`` hooks, each ``T tanh(omega / eps)`` (a torque ``T`` that opposes
 motion, switching over a speed scale ``eps``): with ``omega_free`` the speed after the
@@ -26,15 +27,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 
-from ..params import EWBParams
-from ..physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
-from ..simulate import _motor_states, _mv, phi_matrices
-from .base import AbstractMechanism
+from ewb_ident.model.integrate import matvec, phi_matrices, seed_motor_states
+from ewb_ident.model.params import EWBParams
+from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
+
+if TYPE_CHECKING:  # the mechanisms implement hooks this module calls
+    from ewb_ident.mechanisms.base import AbstractMechanism
 
 #: Longest sub-step of the motor integration with mechanisms, s.
 MAX_SUBSTEP_S = 5.0e-4
@@ -71,18 +74,18 @@ def motor_states(
 ) -> jnp.ndarray:
     """Motor states (i [A], omega [rad/s], theta [rad]) at the sample times, shape (n, 3).
 
-    Without motor mechanisms this is :func:`ewb_ident.simulate._motor_states` (exact).
+    Without motor mechanisms this is :func:`ewb_ident.model.integrate.seed_motor_states` (exact).
     """
     volt = [m for m in mechanisms if m.uses("voltage")]
     fric = [m for m in mechanisms if m.uses("motor_friction")]
     load = [m for m in mechanisms if m.uses("load_torque")]
     if not volt and not fric and not load:
-        return _motor_states(p, voltage_V, dt, theta0_deg, 1, "exponential", None)
+        return seed_motor_states(p, voltage_V, dt, theta0_deg, 1, "exponential", None)
     A, B_V, B_tau = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
     h = dt / n_sub
     E, P1, _ = phi_matrices(A, h)
-    g = _mv(P1, B_V)
-    g_tau = _mv(P1, B_tau)  # exact response to a load torque held over the sub-step
+    g = matvec(P1, B_V)
+    g_tau = matvec(P1, B_tau)  # exact response to a load torque held over the sub-step
     s0 = jnp.zeros(3, dtype=A.dtype).at[2].set(theta0_deg / DEG_PER_RAD)
 
     def force_of(theta_rad):
@@ -93,7 +96,7 @@ def motor_states(
         v_eff = V
         for m in volt:
             v_eff = m.voltage(v_eff, s, p)
-        s1 = _mv(E, s) + g * v_eff
+        s1 = matvec(E, s) + g * v_eff
         if load:
             # The load torque as an input held over the sub-step (exact for a constant
             # one), trapezoidal in its value: at the start, then the mean with its value

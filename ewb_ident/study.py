@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .rig import VARIED_PARAMS
+from ewb_ident.rig import VARIED_PARAMS
 
 
 class StudyError(ValueError):
@@ -182,7 +182,7 @@ def load_study(path: str | Path) -> Study:
 def make_trace(case: Case, params=None):
     """The synthetic trace and truth of a case (the rig, seeded by the case); ``params``
     (a :class:`~ewb_ident.rig.RigParams`) overrides the case's rig unit."""
-    from . import rig
+    from ewb_ident import rig
 
     setting = case.rig
     if params is None:
@@ -212,7 +212,7 @@ def make_trace(case: Case, params=None):
 
 def fit_task(case: Case) -> list[dict[str, Any]]:
     """Least squares on one case: one row per free parameter (estimate, truth, error)."""
-    from .least_squares import fit
+    from ewb_ident.inference.least_squares import fit
 
     trace, truth = make_trace(case)
     t0 = time.perf_counter()
@@ -249,8 +249,8 @@ def compare_task(case: Case) -> list[dict[str, Any]]:
     Task options: ``shift`` (added, SI units, e.g. ``{c = 5e-5}``) and ``scale``
     (multiplied, e.g. ``{R = 1.2}``); one row per parameter with the true change.
     """
-    from . import rig
-    from .compare import compare
+    from ewb_ident import rig
+    from ewb_ident.inference.compare import compare
 
     opts = dict(case.options)
     shift, scale = opts.pop("shift", {}), opts.pop("scale", {})

@@ -1,0 +1,1 @@
+"""Recorded traces: the schema, readers and writers, unit mapping, validation, channel metrics."""

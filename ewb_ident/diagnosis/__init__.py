@@ -1,0 +1,1 @@
+"""Finding the physics the model leaves out: locate, explain, correct."""

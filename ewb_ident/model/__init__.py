@@ -1,0 +1,1 @@
+"""The seed model: parameters, physics, the motor integrator and the chain evaluator."""

@@ -1,0 +1,1 @@
+"""Text summaries, figures and the HTML validation report."""
