@@ -1,0 +1,109 @@
+"""``ewb-ident fit``: least squares of the seed chain (or a stage), optionally with
+catalog mechanisms."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from ewb_ident.cli.options import (
+    EXIT_UNTRUSTWORTHY,
+    FillGaps,
+    Mapping,
+    NoUnitCheck,
+    OutDir,
+    REff,
+    Traces,
+    WithDiagnosisOption,
+    WithOption,
+    app,
+    assignments,
+    bad_input_errors,
+    check_out,
+    corrected_options,
+    fail,
+    mechanism_option,
+    name_list,
+    read_traces,
+)
+
+
+@app.command()
+def fit(
+    traces: Traces,
+    out: OutDir,
+    stage: Annotated[
+        str, typer.Option(help="chain (from voltage alone), or motor, gap, force, torque.")
+    ] = "chain",
+    free: Annotated[
+        str | None, typer.Option(help="Parameters to vary, e.g. 'a,b,c,mu' (default: per stage).")
+    ] = None,
+    per_trace: Annotated[
+        str | None,
+        typer.Option(help="Free parameters fitted per trace, e.g. 'c,p0' after a pad change."),
+    ] = None,
+    fix: Annotated[
+        str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
+    ] = None,
+    integrator: Annotated[
+        str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
+    ] = "exponential",
+    with_: WithOption = None,
+    with_diagnosis: WithDiagnosisOption = None,
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
+) -> None:
+    """Least-squares fit; writes OUT/fit.json and prints a summary."""
+    check_out(out)
+    mechanisms = mechanism_option(with_, with_diagnosis)
+    if mechanisms is not None:
+        corrected_options(traces, stage, free, per_trace, fix, integrator)
+        _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
+        return
+    from ewb_ident.data.outputs import write_json
+    from ewb_ident.inference.least_squares import fit as run_fit
+    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
+    from ewb_ident.reporting.summaries import fit_summary
+
+    if integrator not in ("exponential", "heun"):
+        fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    try:
+        trs = read_traces(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
+        result = run_fit(
+            trs,
+            stage=stage,
+            free=name_list(free),
+            per_trace=name_list(per_trace),
+            fixed=assignments(fix, "--fix"),
+            integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+        )
+    except bad_input_errors() as err:
+        fail(str(err))
+    document = result.to_json() | {"traces": [str(p) for p in traces]}
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "fit.json", document)
+    typer.echo(fit_summary(result))
+    typer.echo(f"wrote {out / 'fit.json'}")
+    if result.status != "ok":
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff) -> None:
+    from ewb_ident.data.outputs import write_json
+    from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected
+    from ewb_ident.reporting.summaries import corrected_summary
+
+    try:
+        (tr,) = read_traces([trace], ("chain",), mapping, fill_gaps, no_unit_check, r_eff)
+        result = fit_corrected(tr, mechanisms)
+    except (*bad_input_errors(), DiagnoseError) as err:
+        fail(str(err))
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "fit.json", result.to_json() | {"traces": [str(trace)]})
+    typer.echo(corrected_summary(result))
+    typer.echo(f"wrote {out / 'fit.json'}")
+    if not result.converged:
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)

@@ -1,0 +1,227 @@
+"""The command line's shared pieces: the Typer app, exit codes, option types, and
+the checks every command makes before it starts work."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help=(
+        "Fit the EWB rig model (DC motor -> worm pinion -> wedge -> caliper) to rig traces, "
+        "say how certain the parameters are, and find the physics the model leaves out.\n\n"
+        "Traces are CSV/Parquet/MATLAB tables in the trace format v1 (time_s, voltage_V, "
+        "theta_deg, x_m, force_N, torque_Nm, current_A) with an optional JSON sidecar."
+    ),
+    pretty_exceptions_enable=False,
+)
+
+EXIT_BAD_INPUT = 2
+#: Done and written, but not trustworthy: not converged, or outside the stated acceptance.
+EXIT_UNTRUSTWORTHY = 3
+
+Traces = Annotated[list[Path], typer.Argument(help="Trace files (.csv, .parquet, .mat).")]
+OutDir = Annotated[Path, typer.Option("--out", "-o", help="Output folder (created if absent).")]
+Mapping = Annotated[
+    Path | None,
+    typer.Option("--map", help="Column mapping (JSON/TOML): source name -> column and unit."),
+]
+FillGaps = Annotated[
+    bool, typer.Option("--fill-gaps", help="Interpolate interior gaps of up to 5 samples.")
+]
+NoUnitCheck = Annotated[
+    bool, typer.Option("--no-unit-check", help="Skip the plausibility checks of units.")
+]
+REff = Annotated[
+    float | None,
+    typer.Option(
+        "--r-eff",
+        help="Effective pad radius, m, for every trace (overrides the sidecar; default: "
+        "the sidecar's r_eff_m, else 0.15 m with a warning).",
+    ),
+]
+WithOption = Annotated[
+    str | None,
+    typer.Option(
+        "--with",
+        help="Catalog mechanisms to add to the chain, e.g. 'backlash' or "
+        "'force_hysteresis,sensor_delay[force_N]' (whole chain, one trace).",
+    ),
+]
+WithDiagnosisOption = Annotated[
+    Path | None,
+    typer.Option("--with-diagnosis", help="Folder of an earlier `diagnose`: add what it found."),
+]
+
+
+def fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def check_out(out: Path, *, folder: bool = True) -> None:
+    """Refuse an output location that cannot be written, before any work starts."""
+    import os
+
+    if folder and out.exists() and not out.is_dir():
+        fail(f"--out {out}: exists and is not a folder; name a folder (it is created)")
+    if not folder and out.is_dir():
+        fail(f"{out}: is a folder; name a file to write")
+    probe = out if folder and out.exists() else out.parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        fail(f"{out}: cannot write there ({probe} is not a writable folder); choose another")
+    # Permissions do not tell everything (an immutable or read-only mounted folder, or
+    # root): try to create a file there, and remove it.
+    import tempfile
+
+    try:
+        fd, name = tempfile.mkstemp(dir=probe, prefix=".ewb-ident-probe-")
+        os.close(fd)
+        os.unlink(name)
+    except OSError as err:
+        fail(f"{out}: cannot write there ({probe}: {err.strerror}); choose another")
+
+
+class Status:
+    """A one-line status on a terminal's stderr (``diagnose``, ``report``): what the
+    long computation is doing now and for how long; silent when stderr is not a
+    terminal (scripts, CI)."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self.live = None
+
+    def __enter__(self):
+        import time
+
+        self.t0 = time.perf_counter()
+        if not sys.stderr.isatty():
+            return lambda text: None
+        from rich.console import Console
+
+        self.live = Console(stderr=True).status(self.what)
+        self.live.start()
+
+        def say(text: str) -> None:
+            self.live.update(f"{self.what}: {text} ({time.perf_counter() - self.t0:.0f} s)")
+
+        return say
+
+    def __exit__(self, *exc) -> None:
+        if self.live is not None:
+            self.live.stop()
+
+
+def name_list(text: str | None) -> list[str] | None:
+    if text is None:
+        return None
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
+def assignments(text: str | None, option: str) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in name_list(text) or []:
+        name, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[name.strip()] = float(value)
+        except ValueError:
+            fail(f"{option} takes NAME=VALUE pairs separated by commas, got {item!r}")
+    return out
+
+
+def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):
+    import dataclasses
+    import math
+
+    from ewb_ident.data.trace import read_trace
+
+    if r_eff is not None and not (math.isfinite(r_eff) and 0.02 <= r_eff <= 0.5):
+        fail(f"--r-eff must be a pad radius within 0.02 to 0.5 m, got {r_eff!r}")
+    out = []
+    for p in paths:
+        tr = read_trace(
+            p,
+            mapping=mapping,
+            stages=stages,
+            nan_policy="interpolate" if fill_gaps else "raise",
+            check_units=not no_unit_check,
+        )
+        if r_eff is not None:
+            side = dict(tr.sidecar) | {"r_eff_m": float(r_eff), "_r_eff_source": "--r-eff"}
+            tr = dataclasses.replace(tr, sidecar=side)
+        out.append(tr)
+    return out
+
+
+def bad_input_errors() -> tuple[type[Exception], ...]:
+    from ewb_ident.data.trace import TraceError
+    from ewb_ident.inference.least_squares import FitError
+
+    return (TraceError, FitError)
+
+
+def corrected_options(traces, stage, free, per_trace, fix, integrator) -> None:
+    """Refuse options the corrected model does not take (it is one trace, whole chain)."""
+    if (
+        len(traces) != 1
+        or stage != "chain"
+        or free
+        or per_trace
+        or fix
+        or integrator != ("exponential")
+    ):
+        fail(
+            "--with/--with-diagnosis take one trace, whole chain, default parameters and "
+            "integrator: drop --stage, --free, --per-trace, --fix and --integrator, or give "
+            "one trace"
+        )
+
+
+def mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str] | None:
+    """Mechanism variants from --with and/or an earlier diagnosis (None: neither given)."""
+    if with_ is None and with_diagnosis is None:
+        return None
+    names = name_list(with_) or []
+    if with_diagnosis is not None:
+        import json
+
+        path = with_diagnosis / "diagnosis.json" if with_diagnosis.is_dir() else with_diagnosis
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+            found = [f["mechanism"] for f in doc["findings"] if f.get("catalog", True)]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            fail(f"--with-diagnosis {with_diagnosis}: cannot read diagnosis.json ({err})")
+        found = [m for m in found if not m.startswith("unexplained_")]
+        if not found:
+            fail(
+                f"--with-diagnosis {with_diagnosis}: the diagnosis found no catalog mechanism "
+                "(verdict none or unexplained); fit without it"
+            )
+        names += [m for m in found if m not in names]
+    if not names:
+        fail("--with: name at least one catalog mechanism")
+    return names
+
+
+def command_line() -> str:
+    """The command line as typed when run as ``ewb-ident`` (or ``python -m ewb_ident``);
+    from Python, the command and its parsed options."""
+    import shlex
+    import sys
+
+    import click
+
+    if Path(sys.argv[0]).name in ("ewb-ident", "__main__.py"):
+        return shlex.join(["ewb-ident", *sys.argv[1:]])
+    ctx = click.get_current_context()
+    opts = [f"{k}={v!r}" for k, v in ctx.params.items()]
+    return f"{ctx.command_path} ({', '.join(opts)})"

@@ -1,0 +1,178 @@
+"""``ewb-ident sample``: the posterior of the parameters by MCMC."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ewb_ident.cli.options import (
+    EXIT_UNTRUSTWORTHY,
+    FillGaps,
+    Mapping,
+    NoUnitCheck,
+    OutDir,
+    REff,
+    Traces,
+    WithDiagnosisOption,
+    WithOption,
+    app,
+    assignments,
+    bad_input_errors,
+    check_out,
+    corrected_options,
+    fail,
+    mechanism_option,
+    name_list,
+    read_traces,
+)
+
+
+@app.command()
+def sample(
+    traces: Traces,
+    out: OutDir,
+    stage: Annotated[
+        str,
+        typer.Option(
+            help="chain (from voltage alone), stages (every teacher-forced stage the traces "
+            "serve), or teacher-forced stages, e.g. 'force,torque'."
+        ),
+    ] = "chain",
+    free: Annotated[
+        str | None, typer.Option(help="Parameters to sample, e.g. 'a,b,c,mu' (default: per stage).")
+    ] = None,
+    per_trace: Annotated[
+        str | None, typer.Option(help="Free parameters sampled per trace, e.g. 'c,p0'.")
+    ] = None,
+    fix: Annotated[
+        str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
+    ] = None,
+    priors: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML file of priors overriding the defaults "
+            "(ewb_ident/inference/priors.toml)."
+        ),
+    ] = None,
+    noise: Annotated[
+        str, typer.Option(help="auto (AR(1) where the residuals are correlated), white or ar1.")
+    ] = "auto",
+    steps: Annotated[int, typer.Option(help="Steps per ensemble.")] = 2000,
+    max_steps: Annotated[
+        int | None,
+        typer.Option(help="Extend the run until converged or this many steps (default 10x)."),
+    ] = None,
+    walkers: Annotated[
+        int | None, typer.Option(help="Walkers per ensemble, even (default max(32, 4 x dim)).")
+    ] = None,
+    ensembles: Annotated[int, typer.Option(help="Independent ensembles (>= 2).")] = 2,
+    min_ess: Annotated[float, typer.Option(help="ESS every parameter needs.")] = 400.0,
+    hdi_prob: Annotated[float, typer.Option(help="Probability of the HDIs.")] = 0.9,
+    draws: Annotated[
+        int, typer.Option(help="Draws stored in posterior.nc with predictive and log-lik.")
+    ] = 1000,
+    seed: Annotated[int, typer.Option(help="Seed of everything random.")] = 0,
+    integrator: Annotated[
+        str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
+    ] = "exponential",
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    with_: WithOption = None,
+    with_diagnosis: WithDiagnosisOption = None,
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
+) -> None:
+    """Posterior by MCMC (emcee) from the least-squares fit; writes OUT/summary.json,
+    OUT/posterior.nc (ArviZ) and OUT/pairs.png, and prints a summary. With --with or
+    --with-diagnosis: the posterior of the chain corrected by those mechanisms."""
+    check_out(out)
+    mechanisms = mechanism_option(with_, with_diagnosis)
+    if mechanisms is not None:
+        corrected_options(traces, stage, free, per_trace, fix, integrator)
+    import time
+
+    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected
+    from ewb_ident.inference.posterior import SampleError, sample_corrected
+    from ewb_ident.inference.posterior import sample as run_sample
+    from ewb_ident.inference.priors import PriorError
+    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
+    from ewb_ident.reporting.summaries import posterior_summary
+
+    if integrator not in ("exponential", "heun"):
+        fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
+    if isinstance(stages, tuple) and len(stages) == 1:
+        stages = stages[0]
+    bar = None
+    if not no_progress and sys.stderr.isatty():
+        from rich.console import Console
+        from rich.progress import Progress
+
+        bar = Progress(console=Console(stderr=True), transient=True)
+    task = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal task
+        if task is None:
+            task = bar.add_task("sampling", total=total)
+        bar.update(task, completed=done, total=total)
+
+    t0 = time.perf_counter()
+    try:
+        trs = read_traces(
+            traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check, r_eff
+        )
+        if bar is not None:
+            bar.start()
+        common = dict(
+            priors=priors,
+            noise_model=noise,
+            n_walkers=walkers,
+            n_steps=steps,
+            max_steps=max_steps,
+            n_ensembles=ensembles,
+            min_ess=min_ess,
+            hdi_prob=hdi_prob,
+            max_draws=draws,
+            seed=seed,
+            progress=None if bar is None else progress,
+        )
+        if mechanisms is None:
+            result = run_sample(
+                trs,
+                stage=stages,
+                free=name_list(free),
+                per_trace=name_list(per_trace),
+                fixed=assignments(fix, "--fix"),
+                integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+                **common,
+            )
+        else:
+            result = sample_corrected(trs[0], fit_corrected(trs[0], mechanisms), **common)
+    except (*bad_input_errors(), SampleError, PriorError, DiagnoseError) as err:
+        fail(str(err))
+    finally:
+        if bar is not None:
+            bar.stop()
+    text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
+    idata, fig = result.to_inference_data(), result.pair_plot()
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(
+        [
+            (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+            (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp))),
+            (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+        ]
+    )
+    typer.echo(posterior_summary(result))
+    typer.echo(
+        f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {out / 'pairs.png'} "
+        f"({time.perf_counter() - t0:.1f} s)"
+    )
+    if not result.converged:
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)

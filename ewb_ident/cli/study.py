@@ -1,0 +1,53 @@
+"""``ewb-ident study``: run a study file (TOML) or script."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ewb_ident.cli.options import OutDir, app, check_out, fail
+
+
+@app.command()
+def study(
+    definition: Annotated[Path, typer.Argument(help="Study definition (TOML), see studies/.")],
+    out: OutDir,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Dask scheduler address (tcp://host:8786); default: in-process."),
+    ] = None,
+) -> None:
+    """Run a batch study: writes OUT/results.csv (one row per case and parameter) and
+    OUT/report.md."""
+    check_out(out)
+    from rich.progress import Progress
+
+    from ewb_ident.data.outputs import atomic_write
+    from ewb_ident.study import StudyError, load_study, run_script, run_study, summarise
+
+    try:
+        spec = load_study(definition)
+    except StudyError as err:
+        fail(str(err))
+    out.mkdir(parents=True, exist_ok=True)
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"study {spec.name}", total=len(spec.cases()) or None)
+
+        def progress(done, total):
+            bar.update(job, completed=done, total=total)
+
+        if spec.script is not None:
+            table, report = run_script(spec, out, progress=progress)
+        else:
+            table = run_study(spec, scheduler=scheduler, progress=progress)
+            report = summarise(spec, table)
+    atomic_write(
+        [
+            (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
+            (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
+        ]
+    )
+    typer.echo(report)
+    typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")

@@ -1,0 +1,62 @@
+"""``ewb-ident validate``: a fitted model simulated on a trace it was not fitted to."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ewb_ident.cli.options import (
+    EXIT_UNTRUSTWORTHY,
+    FillGaps,
+    Mapping,
+    NoUnitCheck,
+    OutDir,
+    REff,
+    app,
+    bad_input_errors,
+    check_out,
+    fail,
+    read_traces,
+)
+
+
+@app.command()
+def validate(
+    trace: Annotated[Path, typer.Argument(help="A trace the parameters were not fitted to.")],
+    params: Annotated[Path, typer.Option("--params", help="fit.json of an earlier fit.")],
+    out: OutDir,
+    mapping: Mapping = None,
+    fill_gaps: FillGaps = False,
+    no_unit_check: NoUnitCheck = False,
+    r_eff: REff = None,
+) -> None:
+    """Simulate fitted parameters on another trace: per-channel RMSE, NRMSE and percent
+    error against the seed's 10 % acceptance and the trace's noise floor; writes
+    OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
+    check_out(out)
+    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.inference.validate import ValidateError, load_params, validation_figure
+    from ewb_ident.inference.validate import validate as run_validate
+    from ewb_ident.reporting.summaries import validation_summary
+
+    try:
+        p = load_params(params)
+        (tr,) = read_traces([trace], None, mapping, fill_gaps, no_unit_check, r_eff)
+        result = run_validate(tr, p)
+    except (*bad_input_errors(), ValidateError) as err:
+        fail(str(err))
+    text = json_text(result.to_json() | {"trace_file": str(trace), "params_file": str(params)})
+    fig = validation_figure(tr, result)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(
+        [
+            (out / "validate.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+            (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+        ]
+    )
+    typer.echo(validation_summary(result, str(params)))
+    typer.echo(f"wrote {out / 'validate.json'} and {out / 'validate.png'}")
+    if not result.passes_seed:
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
