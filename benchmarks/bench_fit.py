@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 import scipy_peer  # noqa: E402
 
-from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 ROOT = Path(__file__).parents[1]

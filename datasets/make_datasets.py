@@ -14,7 +14,7 @@ import numpy as np
 
 from ewb_ident import rig
 from ewb_ident.data.outputs import write_json
-from ewb_ident.data.trace import write_trace
+from ewb_ident.data.writers import write_trace
 
 HERE = Path(__file__).parent
 

@@ -49,10 +49,10 @@ __all__ = sorted(_PUBLIC)
 
 if TYPE_CHECKING:
     from ewb_ident.data.metrics import channel_metrics as channel_metrics
+    from ewb_ident.data.readers import read_trace as read_trace
     from ewb_ident.data.trace import Trace as Trace
     from ewb_ident.data.trace import TraceError as TraceError
-    from ewb_ident.data.trace import read_trace as read_trace
-    from ewb_ident.data.trace import write_trace as write_trace
+    from ewb_ident.data.writers import write_trace as write_trace
     from ewb_ident.diagnosis.diagnose import DiagnoseError as DiagnoseError
     from ewb_ident.diagnosis.diagnose import DiagnosisResult as DiagnosisResult
     from ewb_ident.diagnosis.diagnose import diagnose as diagnose

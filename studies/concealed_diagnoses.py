@@ -19,7 +19,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from ewb_ident.data.outputs import write_text  # noqa: E402
-from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.reporting.figures import write_diagnosis  # noqa: E402
 

@@ -8,7 +8,7 @@ PID position control, staircases, force control (PI) and chirps closed at the lo
 rate, quantised sensors, voltage logging noise, and channel subsets (no current in half
 of the cases, no torque, no disc speed, no force). About 15 % of applies never pass c.
 
-Each case is written to CSV + sidecar, read with :func:`ewb_ident.data.trace.read_trace`
+Each case is written to CSV + sidecar, read with :func:`ewb_ident.data.readers.read_trace`
 and fitted with the defaults (as ``ewb-ident fit TRACE`` does). Nothing here tunes the
 fit: every run draws fresh cases from ``--seed``.
 
@@ -47,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 import third_rig  # noqa: E402
 
 from ewb_ident.data.outputs import write_text  # noqa: E402
-from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.inference.least_squares import fit  # noqa: E402
 

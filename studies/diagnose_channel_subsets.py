@@ -35,7 +35,8 @@ def cases() -> list[tuple[Path, str]]:
 
 
 def run(path: Path, drop: str) -> dict:
-    from ewb_ident.data.trace import Trace, read_trace
+    from ewb_ident.data.readers import read_trace
+    from ewb_ident.data.trace import Trace
     from ewb_ident.diagnosis.diagnose import diagnose
 
     truth = json.loads(path.with_suffix(".truth.json").read_text())

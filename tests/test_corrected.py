@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ewb_ident.cli import app
-from ewb_ident.data.trace import read_trace
+from ewb_ident.data.readers import read_trace
 from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected, mechanism_templates
 
 DATA = Path(__file__).parents[1] / "datasets" / "concealed"

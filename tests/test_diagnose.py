@@ -22,7 +22,8 @@ from typer.testing import CliRunner
 from ewb_ident import rig
 from ewb_ident.cli import app
 from ewb_ident.data.outputs import json_text
-from ewb_ident.data.trace import Trace, write_trace
+from ewb_ident.data.trace import Trace
+from ewb_ident.data.writers import write_trace
 from ewb_ident.diagnosis.diagnose import DiagnoseError, DiagnosisResult, diagnose
 from ewb_ident.inference.least_squares import fit
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ewb_ident.data.trace import read_trace
+from ewb_ident.data.readers import read_trace
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.reporting.html import build_report, write_report
 

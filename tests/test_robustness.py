@@ -11,7 +11,8 @@ import pytest
 from typer.testing import CliRunner
 
 from ewb_ident.cli import app
-from ewb_ident.data.trace import Trace, read_trace
+from ewb_ident.data.readers import read_trace
+from ewb_ident.data.trace import Trace
 from ewb_ident.inference.least_squares import FitError, fit
 
 DATA = Path(__file__).parents[1] / "datasets"

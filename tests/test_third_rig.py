@@ -14,7 +14,7 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
 
 import third_rig  # noqa: E402
 
-from ewb_ident.data.trace import read_trace  # noqa: E402
+from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 

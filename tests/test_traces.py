@@ -13,17 +13,11 @@ import pandas as pd
 import pytest
 import scipy.io
 
-from ewb_ident.data import trace as traces
-from ewb_ident.data.trace import (
-    COLUMNS,
-    Trace,
-    TraceError,
-    check_stages,
-    from_arrays,
-    read_trace,
-    validate,
-    write_trace,
-)
+from ewb_ident.data import writers
+from ewb_ident.data.readers import from_arrays, read_trace
+from ewb_ident.data.trace import COLUMNS, Trace, TraceError
+from ewb_ident.data.validation import check_stages, validate
+from ewb_ident.data.writers import write_trace
 
 FS_HZ = 200.0
 N = 600  # 3 s at 200 Hz
@@ -141,7 +135,7 @@ def test_write_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     def broken_replace(src: object, dst: object) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(traces.os, "replace", broken_replace)
+    monkeypatch.setattr(writers.os, "replace", broken_replace)
     with pytest.raises(TraceError, match=r"syn\.csv: cannot write \(No space left on device\)"):
         write_trace(trace, target)
     assert target.read_text() == "old contents\n"

@@ -142,7 +142,7 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
     import dataclasses
     import math
 
-    from ewb_ident.data.trace import read_trace
+    from ewb_ident.data.readers import read_trace
 
     if r_eff is not None and not (math.isfinite(r_eff) and 0.02 <= r_eff <= 0.5):
         fail(f"--r-eff must be a pad radius within 0.02 to 0.5 m, got {r_eff!r}")

@@ -42,7 +42,7 @@ def simulate(
 
     from ewb_ident import rig
     from ewb_ident.data.outputs import write_json
-    from ewb_ident.data.trace import write_trace
+    from ewb_ident.data.writers import write_trace
 
     if out.suffix.lower() not in (".csv", ".parquet"):
         fail(f"{out}: write a .csv or .parquet trace")
