@@ -53,9 +53,9 @@ if TYPE_CHECKING:
     from ewb_ident.data.trace import Trace as Trace
     from ewb_ident.data.trace import TraceError as TraceError
     from ewb_ident.data.writers import write_trace as write_trace
-    from ewb_ident.diagnosis.diagnose import DiagnoseError as DiagnoseError
-    from ewb_ident.diagnosis.diagnose import DiagnosisResult as DiagnosisResult
     from ewb_ident.diagnosis.diagnose import diagnose as diagnose
+    from ewb_ident.diagnosis.result import DiagnosisResult as DiagnosisResult
+    from ewb_ident.diagnosis.session import DiagnoseError as DiagnoseError
     from ewb_ident.inference.least_squares import FitError as FitError
     from ewb_ident.inference.least_squares import FitResult as FitResult
     from ewb_ident.inference.least_squares import fit as fit

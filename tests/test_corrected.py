@@ -9,7 +9,8 @@ from typer.testing import CliRunner
 
 from ewb_ident.cli import app
 from ewb_ident.data.readers import read_trace
-from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected, mechanism_templates
+from ewb_ident.diagnosis.corrected import fit_corrected, mechanism_templates
+from ewb_ident.diagnosis.session import DiagnoseError
 
 DATA = Path(__file__).parents[1] / "datasets" / "concealed"
 runner = CliRunner()

@@ -24,7 +24,9 @@ from ewb_ident.cli import app
 from ewb_ident.data.outputs import json_text
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.writers import write_trace
-from ewb_ident.diagnosis.diagnose import DiagnoseError, DiagnosisResult, diagnose
+from ewb_ident.diagnosis.diagnose import diagnose
+from ewb_ident.diagnosis.result import DiagnosisResult
+from ewb_ident.diagnosis.session import DiagnoseError
 from ewb_ident.inference.least_squares import fit
 
 P = rig.RigParams()

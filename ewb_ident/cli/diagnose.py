@@ -45,8 +45,8 @@ def diagnose(
     """Locate where the model misses the recording, name the missing physics, add it and
     refit; writes OUT/diagnosis.json and figures, and prints a summary."""
     check_out(out)
-    from ewb_ident.diagnosis.diagnose import DiagnoseError
     from ewb_ident.diagnosis.diagnose import diagnose as run_diagnose
+    from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.reporting.figures import write_diagnosis
 
     if not bic_threshold > 0:

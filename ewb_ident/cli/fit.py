@@ -93,7 +93,8 @@ def fit(
 
 def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff) -> None:
     from ewb_ident.data.outputs import write_json
-    from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected
+    from ewb_ident.diagnosis.corrected import fit_corrected
+    from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.reporting.summaries import corrected_summary
 
     try:

@@ -59,8 +59,8 @@ def report(
             typer.echo("sampling the posterior (emcee, two ensembles) ...")
             post = run_sample(trs, stage=stage, seed=seed)
         if diagnosis and len(trs) == 1:
-            from ewb_ident.diagnosis.diagnose import DiagnoseError
             from ewb_ident.diagnosis.diagnose import diagnose as run_diagnose
+            from ewb_ident.diagnosis.session import DiagnoseError
 
             typer.echo("diagnosing missing physics ...")
             try:
@@ -102,7 +102,7 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
         return None, "its posterior was not run (--no-posterior)"
     if stage != "chain":
         return None, f"its posterior is of the whole chain, and this report is of stage {stage}"
-    from ewb_ident.diagnosis.diagnose import DiagnoseError
+    from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.inference.posterior import SampleError, sample_corrected
 
     mechs = diag.corrected_mechanisms()

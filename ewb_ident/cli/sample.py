@@ -96,7 +96,8 @@ def sample(
     import time
 
     from ewb_ident.data.outputs import atomic_write, json_text
-    from ewb_ident.diagnosis.diagnose import DiagnoseError, fit_corrected
+    from ewb_ident.diagnosis.corrected import fit_corrected
+    from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.inference.posterior import SampleError, sample_corrected
     from ewb_ident.inference.posterior import sample as run_sample
     from ewb_ident.inference.priors import PriorError

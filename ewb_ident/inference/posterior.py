@@ -777,9 +777,9 @@ def sample_corrected(
     """Sample the posterior of the whole chain corrected by catalog mechanisms.
 
     The start is a corrected fit of the trace,
-    :func:`ewb_ident.diagnosis.diagnose.fit_corrected` (the seed chain with the
+    :func:`ewb_ident.diagnosis.corrected.fit_corrected` (the seed chain with the
     mechanisms, fitted from the voltage) or the diagnosis's
-    (:attr:`ewb_ident.diagnosis.diagnose.DiagnosisResult.corrected`); the sampled
+    (:attr:`ewb_ident.diagnosis.result.DiagnosisResult.corrected`); the sampled
     parameters are its free ones: the base parameters the channels determine and every
     mechanism parameter
     (``"variant.param"``). A mechanism parameter's prior is uniform (log-uniform when
@@ -792,7 +792,7 @@ def sample_corrected(
         One trace with ``voltage_V`` and ``theta_deg``.
     corrected
         The corrected fit of ``trace`` (a
-        :class:`ewb_ident.diagnosis.diagnose.CorrectedFit`) whose free parameters are
+        :class:`ewb_ident.diagnosis.corrected.CorrectedFit`) whose free parameters are
         sampled.
     priors, noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob,
     max_draws, seed, progress

@@ -29,7 +29,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 if TYPE_CHECKING:
-    from ewb_ident.diagnosis.diagnose import DiagnosisResult, Finding
+    from ewb_ident.diagnosis.result import DiagnosisResult, Finding
 
 #: One phase palette for every figure, the report's and the diagnosis's.
 PHASE_COLOURS = {

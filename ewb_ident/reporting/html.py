@@ -270,7 +270,7 @@ def build_report(
         Optional :class:`~ewb_ident.inference.posterior.PosteriorResult` (its ``to_summary_json()``
         feeds the parameter table and the MCMC section; its pair plot is included).
     diagnosis
-        Optional :class:`~ewb_ident.diagnosis.diagnose.DiagnosisResult` (its ``to_json()``).
+        Optional :class:`~ewb_ident.diagnosis.result.DiagnosisResult` (its ``to_json()``).
     corrected_posterior
         Optional posterior of the corrected model
         (:func:`~ewb_ident.inference.posterior.sample_corrected`): its HDIs are the corrected

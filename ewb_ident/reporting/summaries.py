@@ -99,7 +99,7 @@ def posterior_summary(result) -> str:
 
 
 def corrected_summary(result) -> str:
-    """Plain text of a fit with mechanisms (:class:`ewb_ident.diagnosis.diagnose.CorrectedFit`):
+    """Plain text of a fit with mechanisms (:class:`ewb_ident.diagnosis.corrected.CorrectedFit`):
     baseline beside corrected values, errors before and after, evidence, warnings."""
     lines = [
         f"fit of {result.trace_name} with {', '.join(result.mechanisms)} (whole chain) - "

@@ -1,0 +1,418 @@
+"""The diagnosis's working state for one trace: its thresholds, the baseline stage
+fits (cached), the augmented fits and their evidence (BIC with AR(1)-effective N)."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from ewb_ident.data.metrics import channel_metrics, noise_sigma, sensor_noise
+from ewb_ident.data.trace import CHANNELS, STAGE_COLUMNS, Trace
+from ewb_ident.diagnosis.correction import (
+    with_signals,
+)
+from ewb_ident.diagnosis.locate import (
+    FLOOR_SCALE,
+    StageCheck,
+    phase_labels,
+)
+from ewb_ident.inference.augmented import (
+    AugFit,
+    fit_mechanisms,
+    make_data,
+)
+from ewb_ident.inference.least_squares import default_free
+from ewb_ident.inference.least_squares import fit as fit_stage
+from ewb_ident.mechanisms import AbstractMechanism
+from ewb_ident.model.integrate import seed_motor_states
+from ewb_ident.model.params import PARAMS, EWBParams
+from ewb_ident.model.physics import clamp_force
+from ewb_ident.model.predict import STAGE_OUTPUTS
+
+#: A mechanism must lower the BIC by at least this much.
+BIC_THRESHOLD = 10.0
+#: ... and remove at least this fraction of the excess residual at its stages.
+MIN_EXPLAINED = 0.5
+#: ... unless it removes at least this share of what the generic correction removes.
+CATALOG_SHARE = 0.8
+#: Most catalog mechanisms selected for one trace.
+MAX_MECHANISMS = 3
+#: Averaging time of the displacement that drives a hysteresis state, s.
+X_SMOOTH_S = 0.01
+#: Most stages given a generic correction.
+MAX_CORRECTIONS = 2
+
+#: How to record a trace that separates two mechanisms a trace could not tell apart.
+SEPARATE: defaultdict[frozenset[str], str] = defaultdict(
+    str,
+    {
+        frozenset(("friction_speed", "friction_fade")): (
+            "when the disc slows steadily while the pads heat up, speed and dissipated "
+            "energy rise and fall together; disc-speed steps, or a cooled-down repeat, "
+            "separate them"
+        ),
+    },
+)
+
+STAGE_ORDER: tuple[str, ...] = ("motor", "gap", "force", "torque")
+MOTOR_PARAMS: tuple[str, ...] = ("R", "L", "kb", "kT", "M", "v")
+MAIN_CHANNEL: dict[str, str] = {
+    "motor": "theta_deg",
+    "gap": "x_m",
+    "force": "force_N",
+    "torque": "torque_Nm",
+}
+
+
+class DiagnoseError(ValueError):
+    """A trace that cannot be diagnosed (the message says why and what to do)."""
+
+
+def pct_text(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def json_number(v: Any) -> Any:
+    if v is None:
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def metrics_json(m: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    return {ch: {k: json_number(v) for k, v in mm.items()} for ch, mm in m.items()}
+
+
+# ----------------------------------------------------------------------------- session
+
+
+def stage_order(stages) -> tuple[str, ...]:
+    if tuple(stages) == ("chain",):
+        return ("chain",)
+    return tuple(s for s in STAGE_ORDER if s in stages)
+
+
+def _key(stages, mechs) -> tuple:
+    return (stage_order(stages), tuple(m.variant + repr(m.static_config()) for m in mechs))
+
+
+class Session:
+    """The trace, its noise floors and data, and a cache of fits."""
+
+    def __init__(self, trace: Trace):
+        self.trace = trace
+        self.cols = tuple(c for c in trace.columns if c != "time_s")
+        self.stages = tuple(s for s in STAGE_ORDER if all(trace.has(c) for c in STAGE_COLUMNS[s]))
+        if not self.stages:
+            raise DiagnoseError(
+                f"{trace.label}: no stage of the chain can be checked: it needs at least "
+                "one input-output pair (voltage_V and theta_deg, theta_deg and x_m, x_m and "
+                "force_N, or force_N and torque_Nm); record these channels"
+            )
+        self.noise = {ch: sensor_noise(trace[ch]) for ch in CHANNELS if trace.has(ch)}
+        self.labels = phase_labels(trace)
+        self.cache: dict[tuple, AugFit] = {}
+        self.ctx = self._facts()
+
+    def _facts(self) -> dict[str, Any]:
+        tr = self.trace
+        ctx: dict[str, Any] = {"dt": tr.dt}
+        if tr.has("voltage_V"):
+            ctx["voltage_noise_V"] = noise_sigma(tr["voltage_V"])
+        if tr.has("force_N"):
+            ctx["force_max_N"] = float(np.max(tr["force_N"]))
+        if tr.has("current_A"):
+            ctx["current_peak_A"] = float(np.max(np.abs(tr["current_A"])))
+        if tr.has("disc_speed_rad_s"):
+            w = tr["disc_speed_rad_s"]
+            contact = self.labels != "gapping"
+            wc = w[contact] if np.sum(contact) > 2 else w
+            ref = float(np.mean(wc))
+            ctx["omega_ref"] = ref if abs(ref) > 1e-6 else 1.0
+            ctx["disc_speed_range"] = (float(np.min(wc)), float(np.max(wc)))
+            ctx["disc_speed_span"] = (
+                float(np.max(wc) - np.min(wc)) / abs(ctx["omega_ref"]) if ref else 0.0
+            )
+            if tr.has("torque_Nm"):
+                ctx["energy_total_J"] = float(np.sum(np.abs(tr["torque_Nm"] * w)) * tr.dt)
+        return ctx
+
+    # -- baseline
+
+    def baseline(self) -> None:
+        tr = self.trace
+        vals = EWBParams().as_dict()
+        vals["theta0_deg"] = float(np.median(tr["theta_deg"][:5])) if tr.has("theta_deg") else 0.0
+        #: The start angle as recorded (a motor refit's second start).
+        self.theta0_measured = vals["theta0_deg"]
+        self.free: dict[str, tuple[str, ...]] = {}
+        self.base_messages: list[str] = []
+        for s in self.stages:
+            free = default_free(s, [tr])
+            self.free[s] = tuple(free)
+            res = _safe_fit(tr, s, self.base_messages)
+            if res is None:
+                continue
+            bad = []
+            for name in free:
+                v = float(res.values[name])
+                info = PARAMS[name]
+                if not np.isfinite(v) or (info.transform == "log" and v <= 1e-9 * info.ref):
+                    bad.append(name)  # degenerate: start from the seed value instead
+                    continue
+                vals[name] = v
+            if bad:
+                self.base_messages.append(
+                    f"the baseline {s}-stage fit returned degenerate values for "
+                    f"{', '.join(bad)}; the diagnosis started them from the seed values"
+                )
+            if not res.converged:
+                self.base_messages.append(f"the baseline {s}-stage fit: {res.message}")
+        self.values = vals
+        kT, R = vals["kT"], vals["R"]
+        self.ctx |= {"kT": kT, "R": R}
+        if tr.has("voltage_V") and R > 0:
+            self.ctx["stall_torque_Nm"] = stall_torque(tr, kT, R)
+        self.sigma_tf = self._stage_sigma(vals)
+        # The displacement that drives a hysteresis state: averaged over about 10 ms,
+        # then through a play twice as wide as the averaged noise (sensor noise must not
+        # drive a rate-independent friction state while the piston stands still).
+        width = max(1, round(X_SMOOTH_S / tr.dt)) | 1
+        xp = 2.0 * self.noise.get("x_m", 0.0) / np.sqrt(width)
+        x_model = None
+        if "motor" in self.stages and "gap" in self.stages:
+            # Better still: the motor model's angle follows the logged voltage, so it
+            # carries the actuator's small motions (controller dither in a hold) that
+            # the displacement sensor's noise hides, and that a friction state feels.
+            theta_model = self.base_fits_motor_theta(vals)
+            x_model = vals["p2"] * theta_model**2 + vals["p1"] * theta_model + vals["p0"]
+        data = make_data(
+            tr,
+            self.sigma_tf,
+            vals,
+            x_play_m=xp,
+            omega_ref=self.ctx.get("omega_ref", 1.0),
+            theta_noise=self.noise.get("theta_deg"),
+            x_smooth=width,
+            x_model=x_model,
+        )
+        self.data = with_signals(data, tr)
+        self.base_fits = {s: self.fit((s,), ()) for s in self.stages}
+        for s, f in self.base_fits.items():
+            for name in self.free[s]:
+                self.values[name] = f.values[name]
+
+    def base_fits_motor_theta(self, v: Mapping[str, float]) -> np.ndarray:
+        """The motor stage's angle (degrees) from the logged voltage, baseline values."""
+        p = EWBParams(**{k: v[k] for k in EWBParams().as_dict()})
+        states = seed_motor_states(
+            p,
+            jnp.asarray(self.trace["voltage_V"]),
+            self.trace.dt,
+            v["theta0_deg"],
+            1,
+            "exponential",
+            None,
+        )
+        return np.asarray(states[:, 2]) * (180.0 / np.pi)
+
+    def _stage_sigma(self, v: Mapping[str, float]) -> dict[str, np.ndarray]:
+        """Noise floor per sample of each teacher-forced stage's output."""
+        tr, nz = self.trace, self.noise
+        out: dict[str, np.ndarray] = {}
+        n = tr.n
+        for s in self.stages:
+            if s == "motor":
+                for ch in ("theta_deg", "current_A"):
+                    if tr.has(ch):
+                        out[ch] = np.full(n, nz[ch])
+            elif s == "gap":
+                th = tr["theta_deg"]
+                g = 2 * v["p2"] * th + v["p1"]
+                out["x_m"] = np.sqrt(nz["x_m"] ** 2 + (g * nz["theta_deg"]) ** 2)
+            elif s == "force":
+                x = tr["x_m"]
+                hx = 1e-3 * abs(v["a"])
+                f = lambda z: np.asarray(clamp_force(z, v["F_rt"], v["a"], v["b"], v["c"]))  # noqa: E731
+                g = (f(x + hx) - f(x - hx)) / (2 * hx)
+                out["force_N"] = np.sqrt(nz["force_N"] ** 2 + (g * nz["x_m"]) ** 2)
+            elif s == "torque":
+                g = 2 * v["mu"] * tr.r_eff_m
+                out["torque_Nm"] = np.sqrt(nz["torque_Nm"] ** 2 + (g * nz["force_N"]) ** 2)
+        return {ch: np.broadcast_to(np.asarray(v, float), (n,)).copy() for ch, v in out.items()}
+
+    # -- fits
+
+    def free_of(self, stages: Sequence[str]) -> tuple[str, ...]:
+        out: list[str] = []
+        for s in stages:
+            out += [n for n in self.free[s] if n not in out]
+        return tuple(out)
+
+    def channels_of(self, stages: Sequence[str]) -> tuple[str, ...]:
+        return tuple(c for s in stages for c in STAGE_OUTPUTS[s] if c in self.sigma_tf)
+
+    def fit(
+        self,
+        stages: Sequence[str],
+        mechs: Sequence[AbstractMechanism],
+        explore: Sequence[bool] | None = None,
+    ) -> AugFit:
+        stages = stage_order(stages)
+        key = _key(stages, mechs)
+        if key not in self.cache:
+            free = self.free_of(stages)
+            alt = []
+            if mechs and "motor" in stages:
+                # A baseline motor fitted without the missing physics has compensated for
+                # it (and a closed-loop trace lets such errors grow without bound): also
+                # start from the nominal motor.
+                nominal = EWBParams().as_dict() | {"theta0_deg": self.theta0_measured}
+                alt.append(
+                    {
+                        n: nominal[n]
+                        for n in free
+                        if n in nominal and n in (*MOTOR_PARAMS, "theta0_deg")
+                    }
+                )
+            self.cache[key] = fit_mechanisms(
+                self.data,
+                stages,
+                free,
+                tuple(mechs),
+                self.channels_of(stages),
+                start={n: self.values[n] for n in free},
+                ctx=self.ctx,
+                explore=explore,
+                alt_starts=alt,
+            )
+        return self.cache[key]
+
+    def check(self, stage: str, f: AugFit) -> list[StageCheck]:
+        out = []
+        for ch in STAGE_OUTPUTS[stage]:
+            if ch in f.predictions and ch in self.sigma_tf:
+                out.append(
+                    StageCheck(stage, ch, self.trace[ch], f.predictions[ch], self.sigma_tf[ch])
+                )
+        return out
+
+    def mechanism_stages(self, m: AbstractMechanism) -> tuple[str, ...]:
+        return tuple(s for s in m.stages if s in self.stages)
+
+
+def chain_baseline(ses: Session, messages: list[str]):
+    """The whole chain from the voltage without mechanisms: its data, free parameters,
+    per-channel noise levels and fit (started from the least-squares chain fit, or the
+    stage values when that fails)."""
+    trace = ses.trace
+    base_chain = _safe_fit(trace, "chain", messages)
+    start = ses.values if base_chain is None else base_chain.values
+    free = tuple(default_free("chain", [trace]))
+    sigma = {ch: ses.noise[ch] for ch in CHANNELS if trace.has(ch)}
+    data = with_signals(
+        make_data(trace, sigma, start, omega_ref=ses.ctx.get("omega_ref", 1.0)), trace
+    )
+    return data, free, sigma, fit_mechanisms(data, ("chain",), free, (), tuple(sigma))
+
+
+def chain_metrics(trace: Trace, f: AugFit) -> dict[str, dict[str, float | None]]:
+    """Metrics of a fit's predictions for the channels the trace records."""
+    return {ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)}
+
+
+def _safe_fit(trace: Trace, stage: str, messages: list[str]):
+    """The baseline fit of one stage by :func:`ewb_ident.inference.least_squares.fit`, or
+    ``None`` (and a
+    message) when it fails numerically: the diagnosis then starts from the seed values."""
+    try:
+        return fit_stage(trace, stage=stage)
+    except (np.linalg.LinAlgError, FloatingPointError, ArithmeticError) as err:
+        messages.append(f"the baseline {stage} fit failed ({err}); started from seed values")
+        return None
+
+
+# ----------------------------------------------------------------------------- evidence
+
+
+def bic_evidence(
+    f1: AugFit,
+    f0: AugFit,
+    sigma: Mapping[str, np.ndarray],
+    own: Sequence[str] | None = None,
+) -> dict[str, float]:
+    """Evidence for the mechanisms ``f1`` adds to ``f0`` (same stages and weights).
+
+    ``explained_fraction`` is the share of the excess of ``f0``'s residual over the
+    noise that ``f1`` removes; the noise expectation of the weighted residual sum of
+    squares is ``sum_ch n c_ch^2`` with ``c_ch`` the residual's own white-noise level per
+    channel (:func:`ewb_ident.diagnosis.locate.floor_scale`), so a noise floor that is off by some
+    per cent does not distort it.
+    """
+    n = f0.n
+    dk = f1.k - f0.k
+    rss0, rss1 = max(f0.rss, 1e-300), max(f1.rss, 1e-300)
+    rho = _lag1(f1, sigma)
+    n_eff = n * (1.0 - rho) / (1.0 + rho)
+    dbic = n_eff * float(np.log(rss1 / rss0)) + dk * float(np.log(n_eff))
+    dchi2 = rss0 - rss1
+    # The explained share is judged on the mechanism's own channels (``own``): a fit
+    # that spans more stages (with an earlier finding) carries their residuals too.
+    chans = [ch for ch in f0.residuals if own is None or ch in own] or list(f0.residuals)
+    expected = ex0 = ex1 = 0.0
+    for ch in chans:
+        e = f0.residuals[ch] / sigma[ch]
+        expected += e.size * float(np.clip(noise_sigma(e), *FLOOR_SCALE)) ** 2
+        ex0 += float(f0.channel_rss[ch])
+        ex1 += float(f1.channel_rss[ch])
+    excess = ex0 - expected
+    explained = (ex0 - ex1) / excess if excess > 0 else 0.0
+    p = float(stats.chi2.sf(max(dchi2, 0.0), max(dk, 1)))
+    return {
+        "delta_bic": dbic,
+        "delta_chi2": dchi2,
+        "explained_fraction": explained,
+        "lr_p_value": p,
+        "score_before": float(np.sqrt(rss0 / n)),
+        "score_after": float(np.sqrt(rss1 / n)),
+        "n_residuals": float(n),
+        "n_effective": float(n_eff),
+        "residual_lag1_after": rho,
+        "n_params_added": float(dk),
+    }
+
+
+#: Largest lag-1 autocorrelation used for the effective number of residuals.
+RHO_MAX = 0.98
+
+
+def _lag1(f: AugFit, sigma: Mapping[str, np.ndarray]) -> float:
+    """Pooled lag-1 autocorrelation of ``f``'s weighted residuals, clipped to
+    ``[0, RHO_MAX]``."""
+    num = den = 0.0
+    for ch, r in f.residuals.items():
+        e = r / sigma[ch]
+        e = e - np.mean(e)
+        num += float(np.dot(e[1:], e[:-1]))
+        den += float(np.dot(e, e))
+    return float(np.clip(num / den, 0.0, RHO_MAX)) if den > 0 else 0.0
+
+
+def chain_prefixed(ev: Mapping[str, float] | None) -> dict[str, float]:
+    """The whole chain's evidence, keys prefixed ``chain_``."""
+    keys = ("delta_bic", "delta_chi2", "lr_p_value")
+    return {f"chain_{k}": ev[k] for k in keys} if ev else {}
+
+
+def fitted_mechanism(f: AugFit, variant: str) -> AbstractMechanism:
+    return next(m for m in f.mechanisms if m.variant == variant)
+
+
+def stall_torque(trace: Trace, kT: float, R: float) -> float:
+    """The motor's stall torque at the trace's largest voltage, N*m."""
+    return kT * float(np.max(np.abs(trace["voltage_V"]))) / R
