@@ -48,7 +48,7 @@ def run_case(k: int, seed: int = SEED) -> list[dict]:
     import jax
 
     from ewb_ident.inference.compare import compare
-    from ewb_ident.inference.least_squares import motor_combination_values
+    from ewb_ident.inference.fit_result import motor_combination_values
 
     jax.config.update("jax_enable_x64", True)
     rng = np.random.default_rng([seed, k])

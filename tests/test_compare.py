@@ -81,7 +81,7 @@ def test_without_current_the_motor_change_is_given_for_what_is_identified():
     import numpy as np
     from other_rig import draw_rig, record
 
-    from ewb_ident.inference.least_squares import motor_combination_values
+    from ewb_ident.inference.fit_result import motor_combination_values
 
     rng = np.random.default_rng([5, 1])
     old = draw_rig(rng)

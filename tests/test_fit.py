@@ -11,7 +11,8 @@ from ewb_ident import rig
 from ewb_ident.data.outputs import json_text
 from ewb_ident.data.readers import read_trace
 from ewb_ident.data.trace import TraceError
-from ewb_ident.inference.least_squares import FitError, fit
+from ewb_ident.inference.least_squares import fit
+from ewb_ident.inference.problem import FitError
 
 DATA = Path(__file__).parents[1] / "datasets"
 

@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 from ewb_ident.cli import app
 from ewb_ident.data.readers import read_trace
 from ewb_ident.data.trace import Trace
-from ewb_ident.inference.least_squares import FitError, fit
+from ewb_ident.inference.least_squares import fit
+from ewb_ident.inference.problem import FitError
 
 DATA = Path(__file__).parents[1] / "datasets"
 runner = CliRunner()

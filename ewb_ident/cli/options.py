@@ -164,7 +164,7 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
 
 def bad_input_errors() -> tuple[type[Exception], ...]:
     from ewb_ident.data.trace import TraceError
-    from ewb_ident.inference.least_squares import FitError
+    from ewb_ident.inference.problem import FitError
 
     return (TraceError, FitError)
 

@@ -26,8 +26,8 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
     make_data,
 )
-from ewb_ident.inference.least_squares import default_free
 from ewb_ident.inference.least_squares import fit as fit_stage
+from ewb_ident.inference.problem import default_free
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import seed_motor_states
 from ewb_ident.model.params import PARAMS, EWBParams

@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.trace import Trace
-from ewb_ident.inference.least_squares import FitResult, fit, motor_combination_values
+from ewb_ident.inference.fit_result import FitResult, motor_combination_values
+from ewb_ident.inference.least_squares import fit
 from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
 

@@ -61,8 +61,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.trace import STAGE_COLUMNS, Trace
-from ewb_ident.inference.least_squares import STAGES, FitError, FitResult, StageProblem, fit
+from ewb_ident.inference.fit_result import FitResult
+from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.priors import Prior, load_priors, mechanism_prior, param_info
+from ewb_ident.inference.problem import STAGES, FitError, StageProblem
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
 from ewb_ident.model.params import PARAMS, STAGE_PARAMS, ParamInfo
 

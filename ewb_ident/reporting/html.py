@@ -26,7 +26,7 @@ import numpy as np
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
 from ewb_ident.data.outputs import atomic_write
 from ewb_ident.data.trace import Trace
-from ewb_ident.inference.least_squares import FitResult
+from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import param_info
 from ewb_ident.model.params import SEED
 from ewb_ident.reporting.figures import (

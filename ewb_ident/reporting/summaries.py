@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ewb_ident.data.metrics import SEED_PERCENT_ERROR
-from ewb_ident.inference.least_squares import FitResult
+from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.model.params import PARAMS, SEED
 
 
