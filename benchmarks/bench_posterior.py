@@ -47,7 +47,8 @@ import scipy_peer  # noqa: E402
 
 from ewb_ident import rig  # noqa: E402
 from ewb_ident.data.outputs import write_json, write_text  # noqa: E402
-from ewb_ident.inference.posterior import _batched, _build, _starts, _v_logp_q, sample  # noqa: E402
+from ewb_ident.inference.log_posterior import batched, build, v_logp_q, walker_starts  # noqa: E402
+from ewb_ident.inference.posterior import sample  # noqa: E402
 from ewb_ident.inference.priors import load_priors  # noqa: E402
 
 ABCMU = ("a", "b", "c", "mu")
@@ -107,12 +108,12 @@ def main() -> None:
 
     # --- The peer on the same posterior, same starts, same seed (ensemble 0).
     priors = load_priors()
-    lp, names, u0, segs = _build(res.fits, priors, "auto", [trace.time_s])
+    lp, names, u0, segs = build(res.fits, priors, "auto", [trace.time_s])
     seq = np.random.SeedSequence(0).spawn(2 * 2 + 3)
-    (p0,) = _starts(lp, res.fits, u0, W, [np.random.default_rng(seq[0])])
+    (p0,) = walker_starts(lp, res.fits, u0, W, [np.random.default_rng(seq[0])])
     fixed = res.fits[0].params[0].as_dict()  # the sampled ones are overwritten from u
     peer_lp = peer_log_prob(names, fixed, priors, segs, trace)
-    ours_lp = _batched(_v_logp_q, lp, p0, size=W // 2)[0]
+    ours_lp = batched(v_logp_q, lp, p0, size=W // 2)[0]
     t0 = time.perf_counter()
     theirs_lp = np.array([peer_lp(u) for u in p0])
     peer_eval_s = (time.perf_counter() - t0) / W
@@ -120,7 +121,7 @@ def main() -> None:
     t0 = time.perf_counter()
     reps = 50
     for _ in range(reps):
-        _batched(_v_logp_q, lp, p0, size=W // 2)
+        batched(v_logp_q, lp, p0, size=W // 2)
     ours_eval_s = (time.perf_counter() - t0) / (reps * W)
 
     def sampler(fn, vectorize):
@@ -133,7 +134,7 @@ def main() -> None:
     t0 = time.perf_counter()
     peer.run_mcmc(p0, args.peer_steps)
     peer_step_s = (time.perf_counter() - t0) / args.peer_steps
-    ours = sampler(lambda X: _batched(_v_logp_q, lp, X, size=W // 2)[0], True)
+    ours = sampler(lambda X: batched(v_logp_q, lp, X, size=W // 2)[0], True)
     ours.run_mcmc(p0, args.peer_steps)
     same = np.all(np.isclose(peer.get_chain(), ours.get_chain(), rtol=0, atol=1e-9), axis=(1, 2))
     identical_steps = int(np.argmin(same)) if not same.all() else args.peer_steps

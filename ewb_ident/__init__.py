@@ -58,9 +58,9 @@ if TYPE_CHECKING:
     from ewb_ident.diagnosis.session import DiagnoseError as DiagnoseError
     from ewb_ident.inference.fit_result import FitResult as FitResult
     from ewb_ident.inference.least_squares import fit as fit
-    from ewb_ident.inference.posterior import PosteriorResult as PosteriorResult
-    from ewb_ident.inference.posterior import SampleError as SampleError
+    from ewb_ident.inference.log_posterior import SampleError as SampleError
     from ewb_ident.inference.posterior import sample as sample
+    from ewb_ident.inference.posterior_result import PosteriorResult as PosteriorResult
     from ewb_ident.inference.problem import FitError as FitError
     from ewb_ident.model.integrate import Integrator as Integrator
     from ewb_ident.model.integrate import NumericalWarning as NumericalWarning

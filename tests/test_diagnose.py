@@ -272,7 +272,7 @@ def test_thresholds_are_reported():
 def test_a_rival_the_trace_cannot_tell_apart_is_named():
     from types import SimpleNamespace
 
-    from ewb_ident.diagnosis.diagnose import _finding
+    from ewb_ident.diagnosis.findings import make_finding
     from ewb_ident.mechanisms import FrictionFade
 
     mech = FrictionFade(phi_per_J=2e-6)
@@ -282,13 +282,13 @@ def test_a_rival_the_trace_cannot_tell_apart_is_named():
     )
     metrics = {"torque_Nm": {"rmse": 1.0, "nrmse_pct": 0.5}}
     ev = {"delta_bic": -50.0}
-    f = _finding(
+    f = make_finding(
         ses, mech, {"phi_per_J": 1e-7}, ev, [], metrics, metrics, [("friction_speed", -45.0)]
     )
     assert "friction_speed (ΔBIC -45) explains it about as well" in f.explanation
     assert "cannot tell them apart" in f.explanation and "disc-speed steps" in f.explanation
     assert f.to_json()["alternatives"] == [{"effect": "friction_speed", "delta_bic": -45.0}]
-    alone = _finding(ses, mech, {"phi_per_J": 1e-7}, ev, [], metrics, metrics)
+    alone = make_finding(ses, mech, {"phi_per_J": 1e-7}, ev, [], metrics, metrics)
     assert "cannot tell" not in alone.explanation and alone.to_json()["alternatives"] == []
 
 

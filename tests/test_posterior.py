@@ -24,7 +24,9 @@ from ewb_ident import rig
 from ewb_ident.cli import app
 from ewb_ident.data.outputs import json_text
 from ewb_ident.data.trace import Trace
-from ewb_ident.inference.posterior import PosteriorResult, SampleError, sample
+from ewb_ident.inference.log_posterior import SampleError
+from ewb_ident.inference.posterior import sample
+from ewb_ident.inference.posterior_result import PosteriorResult
 from ewb_ident.inference.priors import Prior, PriorError, load_priors, parse_prior
 from ewb_ident.model.params import PARAMS
 
@@ -184,14 +186,14 @@ def test_correlated_residuals_switch_on_ar1_and_widen_the_interval():
 
 def test_log_posterior_matches_an_independent_numpy_computation(force_torque):
     """Prior + log-Jacobian + marginal likelihood Q^(-n/2), written out in NumPy."""
-    from ewb_ident.inference.posterior import _batched, _build, _v_logp_q
+    from ewb_ident.inference.log_posterior import batched, build, v_logp_q
 
     trace, _ = force_torque
     res = sample(trace, stage="force", free=["a", "b", "c"], n_steps=40, max_steps=40, seed=0)
-    model, names, u0, _ = _build(res.fits, load_priors(), "white", [trace.time_s])
+    model, names, u0, _ = build(res.fits, load_priors(), "white", [trace.time_s])
     assert names == ("a", "b", "c")
     U = u0 + 0.01 * np.random.default_rng(1).standard_normal((5, 3))
-    got = _batched(_v_logp_q, model, U, size=5)[0]
+    got = batched(v_logp_q, model, U, size=5)[0]
     x, F, sigma = trace["x_m"], trace["force_N"], res.fits[0].sigma[0]["force_N"]
     for u, value in zip(U, got, strict=True):
         a = PARAMS["a"].ref * math.exp(u[0])

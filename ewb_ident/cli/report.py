@@ -103,7 +103,8 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
     if stage != "chain":
         return None, f"its posterior is of the whole chain, and this report is of stage {stage}"
     from ewb_ident.diagnosis.session import DiagnoseError
-    from ewb_ident.inference.posterior import SampleError, sample_corrected
+    from ewb_ident.inference.log_posterior import SampleError
+    from ewb_ident.inference.posterior import sample_corrected
 
     mechs = diag.corrected_mechanisms()
     typer.echo(f"sampling the posterior of the corrected model ({', '.join(mechs)}) ...")

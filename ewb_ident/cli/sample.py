@@ -98,8 +98,9 @@ def sample(
     from ewb_ident.data.outputs import atomic_write, json_text
     from ewb_ident.diagnosis.corrected import fit_corrected
     from ewb_ident.diagnosis.session import DiagnoseError
-    from ewb_ident.inference.posterior import SampleError, sample_corrected
+    from ewb_ident.inference.log_posterior import SampleError
     from ewb_ident.inference.posterior import sample as run_sample
+    from ewb_ident.inference.posterior import sample_corrected
     from ewb_ident.inference.priors import PriorError
     from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
     from ewb_ident.reporting.summaries import posterior_summary

@@ -156,7 +156,7 @@ class FitResult:
                 "names": list(self.corr_names),
                 "matrix": _finite(self.corr).tolist(),
             },
-            "condition_number": _finite_or_none(self.condition_number),
+            "condition_number": finite_or_none(self.condition_number),
             "solver": {"message": self.message, "steps": self.n_steps, "cost": self.cost},
             "derived": motor_combinations(self.params[0]),
             "r_eff_m": {
@@ -205,5 +205,5 @@ def _finite(a: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(a), a, 0.0)
 
 
-def _finite_or_none(x: float) -> float | None:
+def finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None

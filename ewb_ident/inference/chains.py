@@ -1,0 +1,259 @@
+"""Running emcee ensembles until the effective sample size is reached: burn-in, thinning,
+restarts of stuck chains, and the convergence diagnostics (tau, R-hat)."""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import emcee
+import jax
+import numpy as np
+
+from ewb_ident.data.trace import STAGE_COLUMNS
+from ewb_ident.inference.fit_result import FitResult
+from ewb_ident.inference.least_squares import fit
+from ewb_ident.inference.log_posterior import (
+    BURN_TAUS,
+    CHUNK,
+    POOR_FIT,
+    RHAT_MAX,
+    TAU_RELIABLE,
+    SampleError,
+    batched,
+    key,
+    to_physical_columns,
+    v_logp_q,
+    walker_starts,
+)
+from ewb_ident.model.params import STAGE_PARAMS
+
+# ----------------------------------------------------------------------------- diagnostics
+
+
+def autocorr_time(x: np.ndarray) -> np.ndarray:
+    """emcee's integrated autocorrelation time per column of x (steps, walkers, params)."""
+    return emcee.autocorr.integrated_time(x, tol=0)
+
+
+def split_rhat(per_ensemble: Sequence[np.ndarray]) -> float:
+    """Rank-normalised split R-hat between ensembles; each is (steps, walkers), pooled
+    over walkers in time order so that arviz's split halves are early and late draws."""
+    az = import_arviz()
+    with np.errstate(all="ignore"):
+        value = float(az.rhat(np.stack([x.reshape(-1) for x in per_ensemble])))
+    return value if math.isfinite(value) else math.inf  # e.g. a parameter that never moved
+
+
+def _diagnose(chains: list[np.ndarray], phys, min_ess: float) -> dict[str, Any]:
+    """Burn-in, thinning, tau, ESS and R-hat from the chains (steps, walkers, params)."""
+    N, W, _ = chains[0].shape
+    with np.errstate(all="ignore"):
+        tau0 = np.nan_to_num(np.max([autocorr_time(phys(c[N // 2 :])) for c in chains]), nan=N)
+        burn = int(min(math.ceil(BURN_TAUS * tau0), N // 2))
+        post = [phys(c[burn:]) for c in chains]
+        tau = np.nan_to_num(np.stack([autocorr_time(p) for p in post]), nan=np.inf)  # (E, D)
+    n_post = N - burn
+    ess = np.sum(W * n_post / tau, axis=0)
+    rhat = np.array([split_rhat([p[:, :, j] for p in post]) for j in range(tau.shape[1])])
+    return {
+        "burn": burn,
+        "thin": max(1, int(0.5 * min(np.min(tau), N))),
+        "tau": tau,
+        "ess": ess,
+        "rhat": rhat,
+        "n_post": n_post,
+        "reliable": bool(n_post >= TAU_RELIABLE * np.max(tau)),
+        "ok": bool(
+            n_post >= TAU_RELIABLE * np.max(tau)
+            and np.min(ess) >= min_ess
+            and np.max(rhat) < RHAT_MAX
+        ),
+    }
+
+
+def import_arviz():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # arviz's refactoring notice
+        import arviz
+
+    return arviz
+
+
+def hdi(x: np.ndarray, prob: float) -> tuple[float, float]:
+    """Highest-density interval of a 1-D sample (the narrowest interval holding prob)."""
+    s = np.sort(x)
+    k = max(1, int(math.floor(prob * s.size)))
+    widths = s[k:] - s[: s.size - k]
+    i = int(np.argmin(widths))
+    return float(s[i]), float(s[i + k])
+
+
+@dataclass(frozen=True)
+class _Run:
+    samplers: list
+    chains: list[np.ndarray]
+    diag: dict[str, Any]
+    seq: list
+    t_compile: float
+    t_sample: float
+
+    def timing(self, t_start: float, t_fit: float) -> dict[str, float]:
+        return {
+            "fit_s": t_fit - t_start,
+            "compile_and_start_s": self.t_compile - t_fit,
+            "sampling_s": self.t_sample - self.t_compile,
+            "summary_s": time.perf_counter() - self.t_sample,
+        }
+
+
+def run_chains(
+    lp, fits, names, u0, priors, n_walkers, n_steps, max_steps, n_ensembles, min_ess, seed,
+    progress,
+) -> _Run:  # fmt: skip
+    """Independent emcee ensembles from the least-squares optimum, extended until every
+    convergence criterion holds or ``max_steps`` is reached."""
+    excluded = [
+        n
+        for n, v in zip(names, to_physical_columns(names, u0), strict=True)
+        if not np.isfinite(float(priors[key(n)].logpdf(v, np)))
+    ]
+    if excluded:
+        raise SampleError(
+            "the least-squares optimum lies outside the prior bounds of "
+            f"{', '.join(excluded)}: widen them in the prior file, or check the fit"
+        )
+    D = len(names)
+    W = max(32, 4 * D) if n_walkers is None else int(n_walkers)
+    if W < 2 * D or W % 2:
+        raise SampleError(
+            f"n_walkers must be even and at least twice the dimension ({2 * D}), got {W}"
+        )
+    seq = np.random.SeedSequence(seed).spawn(2 * n_ensembles + 3)
+    starts = walker_starts(lp, fits, u0, W, [np.random.default_rng(s) for s in seq[:n_ensembles]])
+    t_compile = time.perf_counter()
+
+    def logp(X: np.ndarray) -> np.ndarray:
+        return batched(v_logp_q, lp, X, size=W // 2)[0]
+
+    samplers = []
+    for e in range(n_ensembles):
+        moves = emcee.moves.DEMove()
+        smp = emcee.EnsembleSampler(W, D, logp, vectorize=True, moves=moves)
+        state = np.random.RandomState(int(seq[n_ensembles + e].generate_state(1)[0]))
+        smp.random_state = state.get_state()
+        if not np.array_equal(smp.random_state[1], state.get_state()[1]):
+            raise RuntimeError("emcee did not accept the seed of its random state")
+        samplers.append(smp)
+    phys = functools.partial(to_physical_columns, names)
+    done, target, states = 0, n_steps, list(starts)
+    with ThreadPoolExecutor(max_workers=n_ensembles) as pool:
+        while True:
+            while done < target:
+                k = min(CHUNK, target - done)
+                states = list(pool.map(functools.partial(_advance, k), samplers, states))
+                done += k
+                if progress is not None:
+                    progress(done, target)
+            chains = [s.get_chain() for s in samplers]
+            diag = _diagnose(chains, phys, min_ess)
+            if diag["ok"] or done >= max_steps:
+                break
+            tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], done)))
+            need = diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (n_ensembles * W))
+            target = int(min(max_steps, max(1.2 * need, done + max(CHUNK, done // 2))))
+    return _Run(samplers, chains, diag, seq, t_compile, time.perf_counter())
+
+
+def poor(f: FitResult) -> bool:
+    """A fit whose residuals are far above the sensor noise on some channel: a local
+    minimum of the least squares (or physics the model leaves out)."""
+    return any(
+        f.sigma[k][ch] > POOR_FIT * max(f.noise[k][ch], 1e-300)
+        for k in range(len(f.sigma))
+        for ch in f.sigma[k]
+    )
+
+
+def restart_chain(traces, first: FitResult, kw: dict, notes: list[str]) -> FitResult:
+    """The whole chain again, from the teacher-forced fits of the gap, force and torque
+    stages; the better of the two fits (lower cost) is kept."""
+    start: dict[str, float] = {}
+    for s in ("gap", "force", "torque"):
+        names = [n for n in first.free if n in STAGE_PARAMS[s] and n not in first.per_trace]
+        if names and all(t.has(c) for t in traces for c in STAGE_COLUMNS[s]):
+            g = fit(traces, stage=s, **(kw | {"free": names, "per_trace": ()}))
+            if g.converged:
+                start |= {n: g.params[0].as_dict()[n] for n in names}
+    if not start:
+        return first
+    second = fit(traces, stage="chain", start=start, **kw)
+    before, after = _profile_nll(first), _profile_nll(second)
+    if not after < before:
+        return first
+    notes.append(
+        "the least-squares fit of the whole chain from its default start left residuals far "
+        "above the sensor noise (a local minimum); it was restarted from the teacher-forced "
+        f"fits of the stages, which raised its log-likelihood by {before - after:.4g}"
+    )
+    return second
+
+
+def _profile_nll(f: FitResult) -> float:
+    """Minus the log-likelihood at the fit with each channel's noise at its ML value
+    (up to a constant): sum of n log(sigma) over traces and channels."""
+    return sum(
+        f.data["traces"][k][ch].shape[0] * math.log(max(sig, 1e-300))
+        for k in range(len(f.sigma))
+        for ch, sig in f.sigma[k].items()
+    )
+
+
+def _advance(k: int, sampler: emcee.EnsembleSampler, state):
+    """``k`` steps of one ensemble (in a worker thread: float64 is set per thread)."""
+    with jax.enable_x64(True):
+        return sampler.run_mcmc(state, k)
+
+
+def convergence_warnings(diag, names, stuck, acc, N, W, E, min_ess) -> list[str]:
+    out = []
+    tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], N)))
+    need = int(math.ceil(diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (E * W))))
+    advice = f"run at least {max(need, N + 1)} steps (--steps {max(need, N + 1)}, or --max-steps)"
+    if not diag["reliable"]:
+        out.append(
+            f"the chains are too short: {diag['n_post']} steps after burn-in are "
+            f"{diag['n_post'] / tau:.1f} autocorrelation times (tau up to {tau:.0f} steps); "
+            f"emcee's tau, ESS and R-hat need at least {TAU_RELIABLE:g} tau; {advice}"
+        )
+    low = [n for n, e in zip(names, diag["ess"], strict=True) if e < min_ess]
+    if low:
+        out.append(
+            f"effective sample size below {min_ess:g} for {', '.join(low)} (minimum "
+            f"{np.min(diag['ess']):.0f}); {advice}"
+        )
+    high = [n for n, r in zip(names, diag["rhat"], strict=True) if r >= RHAT_MAX]
+    if high:
+        out.append(
+            f"R-hat between the {E} ensembles is {np.max(diag['rhat']):.3f} (>= {RHAT_MAX}) "
+            f"for {', '.join(high)}: the ensembles disagree; {advice}, and check the pair "
+            "plot for several modes"
+        )
+    for e, k in enumerate(stuck):
+        if k:
+            out.append(
+                f"ensemble {e}: {k} walker(s) accept far fewer proposals than the rest "
+                "(stuck in a low-probability region): discard this run, fit again, run longer"
+            )
+    if min(float(np.mean(a)) for a in acc) < 0.1:
+        out.append(
+            "acceptance below 10 %: the posterior is narrow or curved for the moves; "
+            "expect long autocorrelation times"
+        )
+    return out

@@ -1,0 +1,280 @@
+"""The log-posterior of the chain's parameters (an equinox module, vectorised over
+walkers), its segments per trace and stage, and the walkers' starts."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ewb_ident.inference.fit_result import FitResult
+from ewb_ident.inference.priors import Prior, param_info
+from ewb_ident.inference.problem import StageProblem
+from ewb_ident.model.params import ParamInfo
+
+#: The parameters every summary reports (CONTRACTS.md).
+CONTRACT_PARAMS: tuple[str, ...] = ("a", "b", "c", "mu")
+NOISE_MODELS: tuple[str, ...] = ("auto", "white", "ar1")
+TEACHER_FORCED: tuple[str, ...] = ("motor", "gap", "force", "torque")
+
+OVERDISPERSION = 2.0  #: start spread, in Laplace standard deviations
+BURN_TAUS = 3.0  #: burn-in, in autocorrelation times
+TAU_RELIABLE = 50.0  #: steps after burn-in (in tau) for emcee's tau estimate to be trusted
+RHAT_MAX = 1.01  #: between-ensemble R-hat above which the ensembles disagree
+STUCK = 0.2  #: a walker accepting less than this fraction of its ensemble's median is stuck
+CHUNK = 100  #: steps between progress reports and convergence checks
+PRIOR_LIKE = 0.5  #: posterior sd / prior sd above which a parameter is "not identified"
+RIDGE = 0.95  #: |posterior correlation| above which two parameters are named as a ridge
+POOR_FIT = 3.0  #: residual sd / sensor noise above which the least-squares start is retried
+
+#: What measurement or input profile identifies each parameter (for the statements).
+HINTS: dict[str, str] = {
+    "a": "an apply that drives the piston through full clamping (x past c) with x_m and "
+    "force_N recorded, e.g. rig profile 'position' or 'staircase' to high force",
+    "b": "an apply through the whole rise of the force, past full clamping (x past c)",
+    "c": "an apply that drives the piston past full clamping (x past c)",
+    "F_rt": "an apply to saturation (x at c), where the force levels off at F_rt",
+    "mu": "a recorded disc torque (torque_Nm) together with the clamping force",
+    "R": "voltage steps of several sizes and lengths with current_A recorded (the "
+    "steady-state current fixes R, the acceleration M)",
+    "L": "current_A logged at 1 kHz or more (the armature pole R/L is 200-1000 1/s)",
+    "kb": "voltage steps of several sizes with theta_deg recorded (profile 'steps')",
+    "kT": "a known load torque, or current with speed and acceleration",
+    "M": "fast voltage steps (the acceleration phase) with theta_deg and current_A recorded",
+    "v": "long voltage steps that reach a steady speed, with theta_deg recorded",
+    "p2": "x_m recorded over the whole stroke, from rest to full clamping",
+    "p1": "x_m recorded over the whole stroke, from rest to full clamping",
+    "p0": "x_m recorded from rest (the air gap)",
+    "theta0_deg": "theta_deg recorded from the first sample",
+}
+
+
+class SampleError(ValueError):
+    """A posterior that cannot be set up as asked (the message says what to change)."""
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def _ar1_q(r: jnp.ndarray, phi: jnp.ndarray) -> jnp.ndarray:
+    """``(1 - phi^2) r0^2 + sum (r_t - phi r_{t-1})^2``: the AR(1) quadratic form."""
+    e = r[1:] - phi * r[:-1]
+    return (1.0 - phi * phi) * r[0] * r[0] + jnp.sum(e * e)
+
+
+class _LogPost(eqx.Module):
+    """Log posterior of the unconstrained vector ``u`` (noise levels marginalised)."""
+
+    problems: tuple[StageProblem, ...]
+    datas: tuple[dict, ...]
+    phi: jnp.ndarray
+    slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    n: tuple[int, ...] = eqx.field(static=True)
+    infos: tuple[ParamInfo, ...] = eqx.field(static=True)
+    priors: tuple[Prior, ...] = eqx.field(static=True)
+
+    def segments(self, u: jnp.ndarray) -> list[tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]]:
+        """(prediction, measurement, least-squares sigma) per trace and channel."""
+        out = []
+        for prob, data, (i0, i1) in zip(self.problems, self.datas, self.slices, strict=True):
+            for k, pred in enumerate(prob.predict(u[i0:i1], data)):
+                tr = data["traces"][k]
+                out += [(pred[ch], tr[ch], tr["sigma"][ch]) for ch in prob.channels[k]]
+        return out
+
+    def residuals(self, u: jnp.ndarray) -> list[jnp.ndarray]:
+        """Residuals per segment, in units of the least-squares noise level."""
+        return [(p - m) / s for p, m, s in self.segments(u)]
+
+    def q(self, u: jnp.ndarray) -> jnp.ndarray:
+        """The AR(1) quadratic form of each segment, shape (segments,)."""
+        return jnp.stack([_ar1_q(r, self.phi[j]) for j, r in enumerate(self.residuals(u))])
+
+    def log_prior(self, u: jnp.ndarray) -> jnp.ndarray:
+        """Prior on the physical values plus the log-Jacobian of the transforms."""
+        lp = jnp.zeros((), u.dtype)
+        for j, (info, prior) in enumerate(zip(self.infos, self.priors, strict=True)):
+            lp = lp + prior.logpdf(info.to_physical(u[j])) + jnp.log(jnp.abs(info.dp_du(u[j])))
+        return lp
+
+    def with_q(self, u: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """The log posterior and the quadratic forms it was computed from."""
+        q = self.q(u)
+        ll = -0.5 * jnp.sum(jnp.asarray(self.n, u.dtype) * jnp.log(jnp.maximum(q, 1e-300)))
+        lp = self.log_prior(u) + ll
+        return jnp.where(jnp.isnan(lp) | (lp == jnp.inf), -jnp.inf, lp), q
+
+    def __call__(self, u: jnp.ndarray) -> jnp.ndarray:
+        return self.with_q(u)[0]
+
+    def predictive(self, u: jnp.ndarray, s: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """Predictions and pointwise log-likelihood (channel units) given innovation sds
+        ``s`` (per segment, least-squares units); both concatenated over segments."""
+        preds, lls = [], []
+        for j, (p, m, sig) in enumerate(self.segments(u)):
+            r, phi = (p - m) / sig, self.phi[j]
+            e = jnp.concatenate([r[:1] * jnp.sqrt(1.0 - phi * phi), r[1:] - phi * r[:-1]])
+            ll = -0.5 * (e / s[j]) ** 2 - jnp.log(s[j] * sig) - 0.5 * jnp.log(2.0 * jnp.pi)
+            lls.append(ll.at[0].add(0.5 * jnp.log(1.0 - phi * phi)))
+            preds.append(p)
+        return jnp.concatenate(preds), jnp.concatenate(lls)
+
+
+@jax.jit
+def v_logp_q(lp: _LogPost, X):
+    return jax.vmap(lp.with_q)(X)
+
+
+@jax.jit
+def v_predictive(lp: _LogPost, X, S):
+    return jax.vmap(lp.predictive)(X, S)
+
+
+def batched(fn, lp, X: np.ndarray, *extra: np.ndarray, size: int):
+    """``fn(lp, X, *extra)`` over the rows of X in batches of one size (one compilation)."""
+    n = X.shape[0]
+    pad = (-n) % size
+    arrays = [np.concatenate([a, np.repeat(a[:1], pad, 0)]) for a in (X, *extra)]
+    outs = []
+    for i in range(0, n + pad, size):
+        res = fn(lp, *(a[i : i + size] for a in arrays))
+        outs.append(jax.tree_util.tree_map(np.asarray, res))
+    return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:n], *outs)
+
+
+# ----------------------------------------------------------------------------- set-up
+
+
+@dataclass(frozen=True)
+class _Segment:
+    trace: int
+    trace_name: str
+    channel: str
+    n: int
+    sigma_ls: float
+    rho1: float
+    phi: float
+    time_s: np.ndarray = field(repr=False)
+    measured: np.ndarray = field(repr=False)
+
+    @property
+    def name(self) -> str:
+        return f"sigma_{self.channel}[{self.trace}]"
+
+    @property
+    def model(self) -> str:
+        return "ar1" if self.phi != 0.0 else "white"
+
+
+def build(fits: Sequence[FitResult], priors: Mapping[str, Prior], noise_model: str, time_s):
+    names: list[str] = []
+    slices, u0 = [], []
+    for f in fits:
+        slices.append((len(names), len(names) + len(f.corr_names)))
+        names += list(f.corr_names)
+        u0.append(np.asarray(f.u, float))
+    bases = [key(n) for n in names]
+    lp = _LogPost(
+        problems=tuple(f.problem for f in fits),
+        datas=tuple(f.data for f in fits),
+        phi=jnp.zeros(sum(len(c) for f in fits for c in f.problem.channels)),
+        slices=tuple(slices),
+        n=tuple(
+            int(f.data["traces"][k][ch].shape[0])
+            for f in fits
+            for k, chs in enumerate(f.problem.channels)
+            for ch in chs
+        ),
+        infos=tuple(param_info(b) for b in bases),
+        priors=tuple(priors[b] for b in bases),
+    )
+    u = np.concatenate(u0) if u0 else np.zeros(0)
+    # Residual autocorrelation at the least-squares optimum decides the noise model.
+    segs: list[_Segment] = []
+    for f in fits:
+        for k, chs in enumerate(f.problem.channels):
+            tr = f.data["traces"][k]
+            for ch in chs:
+                meas = np.asarray(tr[ch])
+                r = (f.predictions[k][ch] - meas) / float(tr["sigma"][ch])
+                rho1 = float(np.sum(r[1:] * r[:-1]) / max(float(np.sum(r * r)), 1e-300))
+                white = noise_model == "white" or (
+                    noise_model == "auto" and abs(rho1) <= 3 / math.sqrt(r.size)
+                )
+                segs.append(
+                    _Segment(
+                        trace=k,
+                        trace_name=f.trace_names[k],
+                        channel=ch,
+                        n=r.size,
+                        sigma_ls=float(tr["sigma"][ch]),
+                        rho1=rho1,
+                        phi=0.0 if white else float(np.clip(rho1, -0.99, 0.99)),
+                        time_s=np.asarray(time_s[k]),
+                        measured=meas,
+                    )
+                )
+    lp = eqx.tree_at(lambda m: m.phi, lp, jnp.asarray([s.phi for s in segs]))
+    return lp, tuple(names), u, tuple(segs)
+
+
+def walker_starts(lp, fits, u0, n_walkers, rngs) -> list[np.ndarray]:
+    """Overdispersed starting walkers around ``u0``: the least-squares fits' Laplace
+    approximation (their correlation and standard errors, in u), its sd x OVERDISPERSION."""
+    sd, blocks = [], []
+    for f in fits:
+        blocks.append(np.where(np.isfinite(f.corr), f.corr, 0.0) if f.corr.size else f.corr)
+        for n, u in zip(f.corr_names, f.u, strict=True):
+            se = f.stderr.get(n)
+            slope = abs(float(info_of(n).dp_du(u)))
+            sd.append(se / slope if se is not None and slope > 0 and np.isfinite(se) else 1.0)
+    C = np.zeros((u0.size, u0.size))
+    i = 0
+    for B in blocks:
+        C[i : i + len(B), i : i + len(B)] = B
+        i += len(B)
+    sd_u = np.minimum(np.asarray(sd), 1.0)
+    cov = C * np.outer(sd_u, sd_u)
+    lam, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    # Never wider than one unit of the O(1) u; never flat (emcee needs a full-rank start).
+    L = V * np.sqrt(np.clip(lam, 1e-8 * max(float(np.max(lam)), 1e-12), 1.0))
+    starts = []
+    for rng in rngs:
+        p = u0 + OVERDISPERSION * rng.standard_normal((n_walkers, u0.size)) @ L.T
+        for _ in range(30):
+            bad = ~np.isfinite(batched(v_logp_q, lp, p, size=n_walkers // 2)[0])
+            if not bad.any():
+                break
+            p[bad] = (
+                u0 + 0.5 * OVERDISPERSION * rng.standard_normal((int(bad.sum()), u0.size)) @ L.T
+            )
+        else:
+            raise SampleError("no finite log-posterior near the least-squares optimum")
+        starts.append(p)
+    return starts
+
+
+def key(name: str) -> str:
+    """The parameter a sampled name belongs to: ``c`` of ``c[1]`` (per trace); a
+    mechanism's ``"variant.param"`` as it is."""
+    return name if "." in name else name.split("[")[0]
+
+
+def info_of(name: str) -> ParamInfo:
+    return param_info(key(name))
+
+
+def hint_of(name: str) -> str:
+    return HINTS.get(key(name), "a trace in which this mechanism acts strongly")
+
+
+def to_physical_columns(names: Sequence[str], u: np.ndarray) -> np.ndarray:
+    """Unconstrained -> physical values (NumPy), column by column."""
+    u = np.asarray(u, float)
+    cols = [info_of(n).to_physical(u[..., j]) for j, n in enumerate(names)]
+    return np.stack([np.asarray(c, float) for c in cols], axis=-1)
