@@ -37,8 +37,9 @@ def validate(
     OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
     check_out(out)
     from ewb_ident.data.outputs import atomic_write, json_text
-    from ewb_ident.inference.validate import ValidateError, load_params, validation_figure
+    from ewb_ident.inference.validate import ValidateError, load_params
     from ewb_ident.inference.validate import validate as run_validate
+    from ewb_ident.reporting.report_figures import validation_figure
     from ewb_ident.reporting.summaries import validation_summary
 
     try:

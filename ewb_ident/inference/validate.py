@@ -188,29 +188,3 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
         words=words,
         simulated=sim,
     )
-
-
-def validation_figure(trace: Trace, result: ValidationResult):
-    """Measured against simulated, one panel per recorded channel, with residuals."""
-    from matplotlib.figure import Figure
-
-    chans = list(result.metrics)
-    fig = Figure(figsize=(10, 1.9 * len(chans) + 0.8), layout="constrained")
-    axes = fig.subplots(len(chans), 1, sharex=True, squeeze=False)[:, 0]
-    scale = {"x_m": (1e3, "x, mm")}
-    for ax, ch in zip(axes, chans, strict=True):
-        k, label = scale.get(ch, (1.0, ch))
-        ax.plot(trace.time_s, trace[ch] * k, ".", ms=1.5, color="k", label="measured")
-        ax.plot(trace.time_s, result.simulated[ch] * k, color="C1", lw=1, label="simulated")
-        m = result.metrics[ch]
-        if m["noise_ratio"] is not None and m["nrmse_pct"] is not None:
-            ax.set_title(
-                f"{ch}: NRMSE {m['nrmse_pct']:.2f} %, RMSE {m['noise_ratio']:.1f}x noise",
-                fontsize=9,
-                loc="left",
-            )
-        ax.set_ylabel(label, fontsize=8)
-    axes[0].legend(loc="upper right", fontsize=8)
-    axes[-1].set_xlabel("time, s")
-    fig.suptitle(f"validation on {trace.name}: {result.verdict}", fontsize=10)
-    return fig

@@ -28,16 +28,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 from matplotlib.figure import Figure
 
+from ewb_ident.reporting.style import (
+    CHANNEL_LABELS,
+    SCALE,
+    legend_with_phases,
+    png_bytes,
+    shade_phases,
+)
+
 if TYPE_CHECKING:
     from ewb_ident.diagnosis.result import DiagnosisResult, Finding
 
-#: One phase palette for every figure, the report's and the diagnosis's.
-PHASE_COLOURS = {
-    "gapping": "#f0f0f0",
-    "clamping": "#fde8c8",
-    "saturation": "#d8ecd8",
-    "release": "#d8e4f4",
-}
 _STAGE_CHANNELS = (
     ("motor", "theta_deg"),
     ("motor", "current_A"),
@@ -45,36 +46,6 @@ _STAGE_CHANNELS = (
     ("force", "force_N"),
     ("torque", "torque_Nm"),
 )
-_LABELS = {
-    "theta_deg": "pinion angle, deg",
-    "current_A": "current, A",
-    "x_m": "displacement, mm",
-    "force_N": "force, N",
-    "torque_Nm": "torque, N m",
-}
-_SCALE = {"x_m": 1e3}
-
-
-def shade_phases(ax, t: np.ndarray, labels: np.ndarray) -> None:
-    """Shade each phase of the apply (:func:`ewb_ident.diagnosis.locate.phase_labels`) behind the
-    curves of ``ax`` (time axis ``t``, s)."""
-    start = 0
-    for k in range(1, t.size + 1):
-        if k == t.size or labels[k] != labels[start]:
-            color = PHASE_COLOURS.get(str(labels[start]), "#ffffff")
-            ax.axvspan(t[start], t[min(k, t.size - 1)], color=color, lw=0, zorder=0)
-            start = k
-
-
-def legend_with_phases(ax, **kwargs) -> None:
-    """The legend of ``ax`` with one patch per phase colour added."""
-    from matplotlib.patches import Patch
-
-    handles, _ = ax.get_legend_handles_labels()
-    handles += [Patch(color=c, label=name) for name, c in PHASE_COLOURS.items()]
-    ax.legend(handles=handles, fontsize=7, ncols=4, **kwargs)
-
-
 def mismatch_figure(result: DiagnosisResult) -> Figure:
     """Normalised residuals per stage before and after, phases shaded."""
     rows = [(s, ch) for s, ch in _STAGE_CHANNELS if (s, ch) in result.checks_before]
@@ -110,7 +81,7 @@ def chain_figure(result: DiagnosisResult) -> Figure:
     axes = fig.subplots(max(len(chans), 1), 1, sharex=True, squeeze=False)[:, 0]
     t = result.trace.time_s
     for ax, ch in zip(axes, chans, strict=False):
-        k = _SCALE.get(ch, 1.0)
+        k = SCALE.get(ch, 1.0)
         ax.plot(t, result.trace[ch] * k, ".", ms=1.5, color="k", label="measured")
         ax.plot(t, result.chain_before[ch] * k, color="0.5", lw=1, label="model before")
         if ch in result.chain_after:
@@ -119,7 +90,7 @@ def chain_figure(result: DiagnosisResult) -> Figure:
         a = result.augmented_metrics.get(ch, {}).get("nrmse_pct")
         if b is not None and a is not None:
             ax.set_title(f"{ch}: NRMSE {b:.2f} % -> {a:.2f} %", fontsize=9, loc="left")
-        ax.set_ylabel(_LABELS.get(ch, ch), fontsize=8)
+        ax.set_ylabel(CHANNEL_LABELS.get(ch, ch), fontsize=8)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time, s")
     fig.suptitle(f"{result.trace_name[:60]}: whole chain from the voltage", fontsize=10)
@@ -141,21 +112,21 @@ def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
         if view is not None:
             drawn = view(top, tr, before, after)
     if not drawn and before is not None:
-        k = _SCALE.get(ch, 1.0)
+        k = SCALE.get(ch, 1.0)
         top.plot(tr.time_s, before.measured * k, ".", ms=1.5, color="k", label="measured")
         top.plot(tr.time_s, before.predicted * k, color="0.5", label="model before")
         if after is not None:
             top.plot(tr.time_s, after.predicted * k, color="C1", label="model after")
         top.set_xlabel("time, s")
-        top.set_ylabel(_LABELS.get(ch, ch))
+        top.set_ylabel(CHANNEL_LABELS.get(ch, ch))
         top.legend(fontsize=8)
     if before is not None:
         shade_phases(bottom, tr.time_s, result.labels)
-        k = _SCALE.get(ch, 1.0)
+        k = SCALE.get(ch, 1.0)
         bottom.plot(tr.time_s, before.residual * k, color="0.6", lw=0.7, label="before")
         if after is not None:
             bottom.plot(tr.time_s, after.residual * k, color="C0", lw=0.7, label="after")
-        bottom.set_ylabel(f"residual\n{_LABELS.get(ch, ch)}", fontsize=8)
+        bottom.set_ylabel(f"residual\n{CHANNEL_LABELS.get(ch, ch)}", fontsize=8)
         bottom.set_xlabel("time, s")
         legend_with_phases(bottom, loc="upper right")
     title = finding.explanation
@@ -290,17 +261,9 @@ def figures_of(result: DiagnosisResult) -> list[tuple[str, Figure]]:
     return figs
 
 
-def _png(fig: Figure) -> bytes:
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    return buf.getvalue()
-
-
 def figure_bytes(result: DiagnosisResult) -> dict[str, bytes]:
     """The figures of a diagnosis as PNG bytes, keyed by file name."""
-    return {name: _png(fig) for name, fig in figures_of(result)}
+    return {name: png_bytes(fig, dpi=90, tight=False) for name, fig in figures_of(result)}
 
 
 def write_diagnosis(

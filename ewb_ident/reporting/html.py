@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -29,134 +28,14 @@ from ewb_ident.data.trace import Trace
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import param_info
 from ewb_ident.model.params import SEED
-from ewb_ident.reporting.figures import (
-    PHASE_COLOURS,
-    figure_bytes,
-    legend_with_phases,
-    shade_phases,
-)
-
-CHANNEL_LABELS = {
-    "voltage_V": "voltage (V)",
-    "current_A": "current (A)",
-    "theta_deg": "pinion angle (deg)",
-    "x_m": "piston gap x (mm)",
-    "force_N": "clamping force (N)",
-    "torque_Nm": "brake torque (N m)",
-    "disc_speed_rad_s": "disc speed (rad/s)",
-}
-SCALE = {"x_m": 1e3}  # shown in mm
-#: Units shown on the page instead of the SI ones: SI unit -> (shown unit, factor).
-SHOWN_UNITS = {"m": ("mm", 1e3), "m/deg": ("µm/deg", 1e6), "m/deg^2": ("nm/deg²", 1e9)}
-
-
-def _subplots(*args, figsize=None, layout=None, **kwargs):
-    """A figure and its axes, on a :class:`matplotlib.figure.Figure`: no pyplot and no
-    global backend (the library never switches matplotlib's backend for its user)."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=figsize, layout=layout)
-    return fig, fig.subplots(*args, **kwargs)
-
-
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    return buf.getvalue()
-
-
-def _phases(trace: Trace) -> np.ndarray:
-    from ewb_ident.diagnosis.locate import phase_labels
-
-    return phase_labels(trace)
-
-
-def figure_overview(trace: Trace) -> bytes:
-    """Every recorded channel against time."""
-    cols = [c for c in CHANNEL_LABELS if trace.has(c)]
-    fig, axes = _subplots(
-        len(cols), 1, figsize=(8, 1.6 * len(cols)), sharex=True, layout="constrained"
-    )
-    for ax, c in zip(np.atleast_1d(axes), cols, strict=True):
-        ax.plot(trace.time_s, trace[c] * SCALE.get(c, 1.0), lw=0.8, color="k")
-        ax.set_ylabel(CHANNEL_LABELS[c], fontsize=8)
-    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
-    fig.suptitle(f"{_short(trace.name)}: recorded channels", fontsize=10)
-    return _png(fig)
-
-
-def figure_fit(
-    trace: Trace,
-    predictions: Mapping[str, np.ndarray],
-    title: str,
-    bands: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
-) -> bytes:
-    """Measured against simulated per channel, residuals below, phases shaded; with
-    ``bands`` (channel -> lower, upper), the 90 % posterior-predictive band shaded."""
-    cols = [c for c in CHANNEL_LABELS if c in predictions]
-    phases = _phases(trace)
-    fig, axes = _subplots(
-        2 * len(cols),
-        1,
-        figsize=(8, 2.2 * len(cols)),
-        sharex=True,
-        gridspec_kw={"height_ratios": [2, 1] * len(cols)},
-        layout="constrained",
-    )
-    t = trace.time_s
-    for j, c in enumerate(cols):
-        s = SCALE.get(c, 1.0)
-        top, bottom = axes[2 * j], axes[2 * j + 1]
-        shade_phases(top, t, phases)
-        top.plot(t, trace[c] * s, lw=0.8, color="k", label="measured")
-        top.plot(t, predictions[c] * s, lw=1.0, color="tab:red", label="simulated")
-        top.set_ylabel(CHANNEL_LABELS[c], fontsize=8)
-        if bands and c in bands:  # where the residual should lie if the model is right
-            lo, hi = (b - predictions[c] for b in bands[c])
-            bottom.fill_between(
-                t, lo * s, hi * s, color="tab:red", alpha=0.2, lw=0,
-                label="90 % posterior predictive",
-            )  # fmt: skip
-        bottom.plot(t, (trace[c] - predictions[c]) * s, lw=0.6, color="tab:blue", label="residual")
-        bottom.axhline(0, color="k", lw=0.5)
-        bottom.set_ylabel("residual", fontsize=8)
-    legend_with_phases(axes[0], loc="lower left", bbox_to_anchor=(0.0, 1.02))
-    if bands:
-        axes[1].legend(fontsize=7, loc="upper right")
-    axes[-1].set_xlabel("time (s)")
-    fig.suptitle(_short(title, 90), fontsize=10)
-    return _png(fig)
-
-
-def figure_bell(params, traces: Sequence[Trace]) -> bytes:
-    """Clamping force against gap from the fitted bell, with its three regions."""
-    F_rt, a, b, c = (float(getattr(params, n)) for n in ("F_rt", "a", "b", "c"))
-    x = np.linspace(c - 3.0 * a, c + 0.5 * a, 600)
-    F = F_rt / (1 + np.abs((x - c) / a) ** (2 * b))
-    fig, ax = _subplots(figsize=(7, 4), layout="constrained")
-    rising = x < c  # F increases with x here
-    lo, hi = (float(np.interp(q, F[rising] / F_rt, x[rising])) for q in (0.05, 0.95))
-    regions = (((x[0], lo), "gapping"), ((lo, hi), "clamping"), ((hi, x[-1]), "saturation"))
-    for (x0, x1), name in regions:
-        ax.axvspan(x0 * 1e3, x1 * 1e3, color=PHASE_COLOURS[name], lw=0)
-        ax.text((x0 + x1) / 2 * 1e3, 0.5 * F_rt, name, ha="center", fontsize=8, color="0.3")
-    for tr in traces:
-        if tr.has("x_m") and tr.has("force_N"):
-            ax.plot(tr["x_m"] * 1e3, tr["force_N"], ".", ms=2, alpha=0.4, label=_short(tr.name, 40))
-    ax.plot(x * 1e3, F, color="tab:red", lw=1.5, label="fitted bell")
-    Fs = float(SEED.F_rt) / (1 + np.abs((x - float(SEED.c)) / float(SEED.a)) ** (2 * float(SEED.b)))
-    ax.plot(x * 1e3, Fs, "--", color="0.4", lw=1, label="seed Table 2 (b = 2.82)")
-    ax.axvline(c * 1e3, color="tab:red", lw=0.6, ls=":")
-    ax.set_xlabel("piston gap x (mm)")
-    ax.set_ylabel("clamping force (N)")
-    ax.legend(fontsize=7, loc="upper left")
-    ax.set_title("Clamping force: the generalized bell (seed Figure 8)", fontsize=10)
-    return _png(fig)
+from ewb_ident.reporting.figures import figure_bytes
+from ewb_ident.reporting.report_figures import figure_bell, figure_fit, figure_overview, phases_of
+from ewb_ident.reporting.style import CHANNEL_LABELS, PHASE_COLOURS, SCALE, SHOWN_UNITS, png_bytes
 
 
 def phase_table(trace: Trace, predictions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
     """RMS residual per channel and phase, beside the channel's sensor noise."""
-    phases = _phases(trace)
+    phases = phases_of(trace)
     rows = []
     for c, pred in predictions.items():
         if not trace.has(c):
@@ -224,11 +103,6 @@ def _table(head: Sequence[str], rows: Sequence[Sequence[Any]], left: int = 1) ->
         for row in rows
     )
     return f"<table><tr>{th}</tr>{body}</table>"
-
-
-def _short(text: str, limit: int = 60) -> str:
-    """``text`` cut to ``limit`` characters for a figure title."""
-    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _slug(name: str, limit: int = 40) -> str:
@@ -594,7 +468,7 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
         if text:
             out.append(f'<div class="warn">{_e(text)}</div>')
     if hasattr(posterior, "pair_plot"):
-        figures["pair.png"] = _png(posterior.pair_plot())
+        figures["pair.png"] = png_bytes(posterior.pair_plot())
         out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
         names, corr = posterior.correlation()
         out.append("<p>Posterior correlation of a, b, c, mu:</p>")

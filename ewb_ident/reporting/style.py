@@ -1,0 +1,72 @@
+"""One style for every figure: the phase palette, the channel labels and scales, and
+figures drawn on :class:`matplotlib.figure.Figure` (no pyplot, no global backend: the
+library never switches matplotlib's backend for its user)."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from matplotlib.figure import Figure
+
+#: One phase palette for every figure, the report's and the diagnosis's.
+PHASE_COLOURS = {
+    "gapping": "#f0f0f0",
+    "clamping": "#fde8c8",
+    "saturation": "#d8ecd8",
+    "release": "#d8e4f4",
+}
+
+CHANNEL_LABELS = {
+    "voltage_V": "voltage (V)",
+    "current_A": "current (A)",
+    "theta_deg": "pinion angle (deg)",
+    "x_m": "piston gap x (mm)",
+    "force_N": "clamping force (N)",
+    "torque_Nm": "brake torque (N m)",
+    "disc_speed_rad_s": "disc speed (rad/s)",
+}
+SCALE = {"x_m": 1e3}  # shown in mm
+#: Units shown on the page instead of the SI ones: SI unit -> (shown unit, factor).
+SHOWN_UNITS = {"m": ("mm", 1e3), "m/deg": ("µm/deg", 1e6), "m/deg^2": ("nm/deg²", 1e9)}
+
+
+def subplots(*args, figsize=None, layout=None, **kwargs):
+    """A figure and its axes, on a :class:`matplotlib.figure.Figure`."""
+    fig = Figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(*args, **kwargs)
+
+
+def png_bytes(fig: Figure, *, dpi: int = 110, tight: bool = True) -> bytes:
+    """The figure as PNG bytes."""
+    buf = io.BytesIO()
+    if tight:
+        fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    else:
+        fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def short_text(text: str, limit: int = 60) -> str:
+    """``text`` cut to ``limit`` characters for a figure title."""
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def shade_phases(ax, t: np.ndarray, labels: np.ndarray) -> None:
+    """Shade each phase of the apply (:func:`ewb_ident.diagnosis.locate.phase_labels`) behind the
+    curves of ``ax`` (time axis ``t``, s)."""
+    start = 0
+    for k in range(1, t.size + 1):
+        if k == t.size or labels[k] != labels[start]:
+            color = PHASE_COLOURS.get(str(labels[start]), "#ffffff")
+            ax.axvspan(t[start], t[min(k, t.size - 1)], color=color, lw=0, zorder=0)
+            start = k
+
+
+def legend_with_phases(ax, **kwargs) -> None:
+    """The legend of ``ax`` with one patch per phase colour added."""
+    from matplotlib.patches import Patch
+
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Patch(color=c, label=name) for name, c in PHASE_COLOURS.items()]
+    ax.legend(handles=handles, fontsize=7, ncols=4, **kwargs)
