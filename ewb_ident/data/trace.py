@@ -75,21 +75,10 @@ COLUMNS: dict[str, str] = {
     "disc_speed_rad_s": "rad/s",
 }
 
-#: Measured channels a model output can be compared with.
-CHANNELS: tuple[str, ...] = ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A")
 
-#: Input and output columns of each stage of the chain (``chain``: the whole chain).
-STAGE_COLUMNS: dict[str, tuple[str, str]] = {
-    "motor": ("voltage_V", "theta_deg"),
-    "gap": ("theta_deg", "x_m"),
-    "force": ("x_m", "force_N"),
-    "torque": ("force_N", "torque_Nm"),
-}
 
 DEFAULT_R_EFF_M = 0.15
 
-#: Stage names accepted by :func:`read_trace`, :func:`validate` and :func:`check_stages`.
-STAGES: tuple[str, ...] = (*STAGE_COLUMNS, "chain")
 
 #: Longest run of consecutive missing samples that ``nan_policy="interpolate"`` fills.
 MAX_GAP = 5

@@ -10,12 +10,10 @@ from typing import Any
 
 import numpy as np
 
+from ewb_ident.data.stages import CHANNELS, STAGE_COLUMNS, STAGES
 from ewb_ident.data.trace import (
-    CHANNELS,
     COLUMNS,
     DEFAULT_R_EFF_M,
-    STAGE_COLUMNS,
-    STAGES,
     Trace,
     column_label,
     declared_units,

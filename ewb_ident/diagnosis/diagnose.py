@@ -53,6 +53,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from ewb_ident.data.metrics import channel_metrics
+from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.diagnosis.corrected import corrected_of, model_tables
 from ewb_ident.diagnosis.correction import (
@@ -93,7 +94,6 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
-from ewb_ident.model.predict import STAGE_OUTPUTS
 
 # ----------------------------------------------------------------------------- main
 

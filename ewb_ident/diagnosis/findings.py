@@ -9,6 +9,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.correction import (
     FEATURES,
     GenericCorrection,
@@ -18,7 +19,6 @@ from ewb_ident.diagnosis.correction import (
 )
 from ewb_ident.diagnosis.locate import (
     PHASES,
-    STAGE_WORDS,
     Mismatch,
     describe_signature,
     score_check,
@@ -27,14 +27,7 @@ from ewb_ident.diagnosis.locate import (
     summary_text,
 )
 from ewb_ident.diagnosis.result import Finding
-from ewb_ident.diagnosis.session import (
-    MAIN_CHANNEL,
-    SEPARATE,
-    Session,
-    bic_evidence,
-    stage_order,
-    stall_torque,
-)
+from ewb_ident.diagnosis.session import SEPARATE, Session, bic_evidence, stage_order, stall_torque
 from ewb_ident.inference.augmented import (
     AugFit,
     AugProblem,

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.metrics import noise_sigma, smooth
+from ewb_ident.data.stages import STAGE_WORDS
 from ewb_ident.data.trace import Trace
 
 PHASES: tuple[str, ...] = ("gapping", "clamping", "saturation", "release")
@@ -56,14 +57,6 @@ Z_MIN = 5.0
 #: Fewest samples of a phase that is scored.
 MIN_SAMPLES = 12
 
-#: Stage -> (input channel, output channels) for the words.
-STAGE_WORDS: dict[str, str] = {
-    "motor": "motor stage (voltage -> angle, current)",
-    "gap": "gap stage (angle -> displacement)",
-    "force": "force stage (displacement -> force)",
-    "torque": "torque stage (force -> torque)",
-    "chain": "whole chain (from voltage)",
-}
 UNITS: dict[str, str] = {
     "theta_deg": "deg",
     "x_m": "m",

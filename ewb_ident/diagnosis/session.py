@@ -12,7 +12,14 @@ import numpy as np
 from scipy import stats
 
 from ewb_ident.data.metrics import channel_metrics, noise_sigma, sensor_noise
-from ewb_ident.data.trace import CHANNELS, STAGE_COLUMNS, Trace
+from ewb_ident.data.stages import (
+    CHANNELS,
+    STAGE,
+    STAGE_COLUMNS,
+    STAGE_OUTPUTS,
+    TEACHER_FORCED,
+)
+from ewb_ident.data.trace import Trace
 from ewb_ident.diagnosis.correction import (
     with_signals,
 )
@@ -32,7 +39,6 @@ from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import seed_motor_states
 from ewb_ident.model.params import PARAMS, EWBParams
 from ewb_ident.model.physics import clamp_force
-from ewb_ident.model.predict import STAGE_OUTPUTS
 
 #: A mechanism must lower the BIC by at least this much.
 BIC_THRESHOLD = 10.0
@@ -59,14 +65,8 @@ SEPARATE: defaultdict[frozenset[str], str] = defaultdict(
     },
 )
 
-STAGE_ORDER: tuple[str, ...] = ("motor", "gap", "force", "torque")
-MOTOR_PARAMS: tuple[str, ...] = ("R", "L", "kb", "kT", "M", "v")
-MAIN_CHANNEL: dict[str, str] = {
-    "motor": "theta_deg",
-    "gap": "x_m",
-    "force": "force_N",
-    "torque": "torque_Nm",
-}
+#: The motor's physical parameters (its stage's, less the start angle).
+MOTOR_PARAMS: tuple[str, ...] = tuple(n for n in STAGE["motor"].params if n != "theta0_deg")
 
 
 class DiagnoseError(ValueError):
@@ -94,7 +94,7 @@ def metrics_json(m: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]
 def stage_order(stages) -> tuple[str, ...]:
     if tuple(stages) == ("chain",):
         return ("chain",)
-    return tuple(s for s in STAGE_ORDER if s in stages)
+    return tuple(s for s in TEACHER_FORCED if s in stages)
 
 
 def _key(stages, mechs) -> tuple:
@@ -107,7 +107,9 @@ class Session:
     def __init__(self, trace: Trace):
         self.trace = trace
         self.cols = tuple(c for c in trace.columns if c != "time_s")
-        self.stages = tuple(s for s in STAGE_ORDER if all(trace.has(c) for c in STAGE_COLUMNS[s]))
+        self.stages = tuple(
+            s for s in TEACHER_FORCED if all(trace.has(c) for c in STAGE_COLUMNS[s])
+        )
         if not self.stages:
             raise DiagnoseError(
                 f"{trace.label}: no stage of the chain can be checked: it needs at least "

@@ -16,7 +16,7 @@ import emcee
 import jax
 import numpy as np
 
-from ewb_ident.data.trace import STAGE_COLUMNS
+from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_PARAMS
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.log_posterior import (
@@ -32,7 +32,6 @@ from ewb_ident.inference.log_posterior import (
     v_logp_q,
     walker_starts,
 )
-from ewb_ident.model.params import STAGE_PARAMS
 
 # ----------------------------------------------------------------------------- diagnostics
 

@@ -24,11 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.stages import STAGE_PARAMS
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.model.integrate import simulate_chain
-from ewb_ident.model.params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 
 #: The seed's operating point: its open-loop apply, 4 V for 0.25 s from rest (then 0 V),
 #: logged at 200 Hz; the torque is read while the brake holds, at t = 1.0 s.

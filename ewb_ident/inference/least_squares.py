@@ -33,6 +33,7 @@ from ewb_ident.data.metrics import (
     noise_floor,
     noise_sigma,
 )
+from ewb_ident.data.stages import STAGE_PARAMS
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.fit_result import FitResult, motor_combinations
 from ewb_ident.inference.initial import bell_start, motor_start
@@ -52,7 +53,7 @@ from ewb_ident.inference.uncertainty import (
     saturation_notes,
 )
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
-from ewb_ident.model.params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.physics import gap
 
 

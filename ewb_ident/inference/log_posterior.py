@@ -20,7 +20,6 @@ from ewb_ident.model.params import ParamInfo
 #: The parameters every summary reports (CONTRACTS.md).
 CONTRACT_PARAMS: tuple[str, ...] = ("a", "b", "c", "mu")
 NOISE_MODELS: tuple[str, ...] = ("auto", "white", "ar1")
-TEACHER_FORCED: tuple[str, ...] = ("motor", "gap", "force", "torque")
 
 OVERDISPERSION = 2.0  #: start spread, in Laplace standard deviations
 BURN_TAUS = 3.0  #: burn-in, in autocorrelation times

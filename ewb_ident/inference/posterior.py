@@ -55,15 +55,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ewb_ident.data.trace import STAGE_COLUMNS, Trace
+from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_PARAMS, STAGES, TEACHER_FORCED
+from ewb_ident.data.trace import Trace
 from ewb_ident.inference.chains import poor, restart_chain, run_chains
 from ewb_ident.inference.least_squares import fit
-from ewb_ident.inference.log_posterior import NOISE_MODELS, TEACHER_FORCED, SampleError, build
+from ewb_ident.inference.log_posterior import NOISE_MODELS, SampleError, build
 from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
-from ewb_ident.inference.problem import STAGES, FitError
+from ewb_ident.inference.problem import FitError
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
-from ewb_ident.model.params import STAGE_PARAMS
 
 
 def _stage_list(stage: str | Sequence[str], traces: Sequence[Trace]) -> tuple[str, ...]:

@@ -17,14 +17,14 @@ from ewb_ident.data.metrics import (
     noise_floor,
     noise_sigma,
 )
-from ewb_ident.data.trace import CHANNELS, STAGE_COLUMNS, Trace, TraceError
+from ewb_ident.data.stages import CHANNELS, STAGE_COLUMNS, STAGE_PARAMS, STAGES
+from ewb_ident.data.trace import Trace, TraceError
 from ewb_ident.inference.initial import motor_lag
 from ewb_ident.model.integrate import heun_amplification, seed_motor_states
-from ewb_ident.model.params import MODEL_PARAMS, PARAMS, STAGE_PARAMS, EWBParams
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.physics import brake_torque, clamp_force, gap
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
-STAGES: tuple[str, ...] = ("motor", "gap", "force", "torque", "chain")
 
 #: Parameters fitted per trace unless the user says otherwise: the start angle is a
 #: property of each recording, not of the rig.

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
-from ewb_ident.data.trace import CHANNELS, Trace, TraceError
+from ewb_ident.data.stages import CHANNELS
+from ewb_ident.data.trace import Trace, TraceError
 from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.params import MODEL_PARAMS, EWBParams
 

@@ -73,16 +73,6 @@ HOOKS: tuple[str, ...] = (
     "output",
 )
 
-#: The stage whose output each channel is.
-CHANNEL_STAGE: dict[str, str] = {
-    "theta_deg": "motor",
-    "current_A": "motor",
-    "x_m": "gap",
-    "force_N": "force",
-    "torque_Nm": "torque",
-}
-#: The stage whose input each channel is (teacher-forced).
-CHANNEL_INPUT_OF: dict[str, str] = {"theta_deg": "gap", "x_m": "force", "force_N": "torque"}
 
 
 class AbstractMechanism(eqx.Module):

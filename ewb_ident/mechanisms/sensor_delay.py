@@ -15,7 +15,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from ewb_ident.mechanisms.base import CHANNEL_INPUT_OF, CHANNEL_STAGE, AbstractMechanism, fmt_pm
+from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE
+from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
 from ewb_ident.model.params import ParamInfo
 
 _INFO = (ParamInfo("delay_s", "s", "log", 0.01, lower=1e-4, upper=0.25, doc="sensor delay"),)

@@ -181,13 +181,3 @@ PARAMS: dict[str, ParamInfo] = {
     )
 }
 
-#: The parameters each stage can vary (``chain``: the whole chain).
-STAGE_PARAMS: dict[str, tuple[str, ...]] = {
-    "motor": ("R", "L", "kb", "kT", "M", "v", "theta0_deg"),
-    "gap": ("p2", "p1", "p0"),
-    "force": ("F_rt", "a", "b", "c"),
-    "torque": ("mu",),
-}
-STAGE_PARAMS["chain"] = tuple(
-    n for s in ("motor", "gap", "force", "torque") for n in STAGE_PARAMS[s]
-)

@@ -48,13 +48,6 @@ FRICTION_NEWTON_STEPS = 3
 #: Hooks that act inside the motor integration.
 MOTOR_HOOKS: tuple[str, ...] = ("voltage", "motor_friction", "load_torque")
 
-#: Output channel(s) of each teacher-forced stage.
-STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
-    "motor": ("theta_deg", "current_A"),
-    "gap": ("x_m",),
-    "force": ("force_N",),
-    "torque": ("torque_Nm",),
-}
 
 
 def n_substeps(dt: float, mechanisms: Sequence[AbstractMechanism]) -> int:

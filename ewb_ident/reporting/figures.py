@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from matplotlib.figure import Figure
 
+from ewb_ident.data.stages import STAGE_CHANNELS
 from ewb_ident.reporting.style import (
     CHANNEL_LABELS,
     SCALE,
@@ -39,16 +40,9 @@ from ewb_ident.reporting.style import (
 if TYPE_CHECKING:
     from ewb_ident.diagnosis.result import DiagnosisResult, Finding
 
-_STAGE_CHANNELS = (
-    ("motor", "theta_deg"),
-    ("motor", "current_A"),
-    ("gap", "x_m"),
-    ("force", "force_N"),
-    ("torque", "torque_Nm"),
-)
 def mismatch_figure(result: DiagnosisResult) -> Figure:
     """Normalised residuals per stage before and after, phases shaded."""
-    rows = [(s, ch) for s, ch in _STAGE_CHANNELS if (s, ch) in result.checks_before]
+    rows = [(s, ch) for s, ch in STAGE_CHANNELS if (s, ch) in result.checks_before]
     fig = Figure(figsize=(10, 1.9 * max(len(rows), 1) + 0.8), layout="constrained")
     axes = fig.subplots(max(len(rows), 1), 1, sharex=True, squeeze=False)[:, 0]
     t = result.trace.time_s
@@ -76,7 +70,7 @@ def mismatch_figure(result: DiagnosisResult) -> Figure:
 
 def chain_figure(result: DiagnosisResult) -> Figure:
     """The whole chain from the voltage, each channel, before and after."""
-    chans = [ch for _, ch in _STAGE_CHANNELS if ch in result.chain_before and result.trace.has(ch)]
+    chans = [ch for _, ch in STAGE_CHANNELS if ch in result.chain_before and result.trace.has(ch)]
     fig = Figure(figsize=(10, 1.8 * max(len(chans), 1) + 0.8), layout="constrained")
     axes = fig.subplots(max(len(chans), 1), 1, sharex=True, squeeze=False)[:, 0]
     t = result.trace.time_s
