@@ -164,3 +164,19 @@ def test_noise_levels_are_estimated_not_hand_set(staircase):
     # the residual noise level includes the force sensor's noise through the input
     assert result.sigma[0]["torque_Nm"] == pytest.approx(np.hypot(1.0, 1.13), rel=0.1)
     assert np.isfinite(result.cost)
+
+
+def test_a_diverging_seed_integrator_is_reported_not_raised():
+    """Was: ``fit --integrator heun`` on the seed's own 100 Hz trace ended in a
+    ``LinAlgError: SVD did not converge`` traceback (Heun at 0.01 s diverges for this
+    armature, so the Jacobian held NaN). Now: not converged, no standard errors, and the
+    words say why."""
+    from ewb_ident.model.integrate import SEED_HEUN
+
+    res = fit(read_trace(DATA / "seed_steps_100hz.csv"), integrator=SEED_HEUN, max_steps=20)
+    assert not res.converged
+    assert all(se is None for se in res.stderr.values())
+    words = " ".join(res.warnings)
+    assert "Heun's method at the seed's step is unstable" in words
+    assert "not finite where the solver stopped" in words
+    json.loads(json_text(res.to_json()))  # the contract's JSON is still written

@@ -307,7 +307,13 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
     ]
     unc = parameter_uncertainty(J, r, u, infos)
     stderr = dict(zip(names, unc.stderr, strict=True))
-    notes += identifiability_notes(names, unc, stderr)
+    if np.all(np.isfinite(J)) and np.all(np.isfinite(r)):
+        notes += identifiability_notes(names, unc, stderr)
+    else:
+        notes.append(
+            "the model's prediction or its Jacobian is not finite where the solver stopped: "
+            "no standard errors"
+        )
 
     preds = [
         {k: np.asarray(v) for k, v in p.items() if k in chs}
@@ -318,7 +324,8 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         vals = problem.values(u, setup.base.as_dict() | {"theta0_deg": float(d["theta0_deg"])}, k)
         params.append(EWBParams(**{n: float(vals[n]) for n in MODEL_PARAMS}))
         theta0.append(float(vals["theta0_deg"]))
-    if setup.stage in ("force", "chain") and any(n in setup.free for n in ("a", "b", "c")):
+    finite = np.all(np.isfinite(J)) and np.all(np.isfinite(r))
+    if finite and setup.stage in ("force", "chain") and any(n in setup.free for n in "abc"):
         notes += saturation_notes(traces, preds, params, unc.corr, names)
     trace_metrics = tuple(
         {ch: channel_metrics(p[ch], t[ch]) for ch in chs}

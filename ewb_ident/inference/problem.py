@@ -20,9 +20,9 @@ from ewb_ident.data.metrics import (
 from ewb_ident.data.stages import CHANNELS, STAGE_COLUMNS, STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace, TraceError
 from ewb_ident.inference.initial import motor_lag
-from ewb_ident.model.integrate import heun_amplification, seed_motor_states
+from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
-from ewb_ident.model.physics import brake_torque, clamp_force, gap
+from ewb_ident.model.predict import predict
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 
@@ -165,20 +165,8 @@ class StageProblem(eqx.Module):
         return preds
 
     def _predict_one(self, p: EWBParams, theta0, tr: dict, n_sub: int) -> dict:
-        if self.stage == "gap":
-            return {"x_m": gap(tr["theta_deg"], p.p2, p.p1, p.p0)}
-        if self.stage == "force":
-            return {"force_N": clamp_force(tr["x_m"], p.F_rt, p.a, p.b, p.c)}
-        if self.stage == "torque":
-            return {"torque_Nm": brake_torque(tr["force_N"], p.mu, tr["r_eff_m"])}
-        s = seed_motor_states(p, tr["voltage_V"], tr["dt"], theta0, n_sub, self.method, None)
-        theta = s[:, 2] * (180.0 / jnp.pi)
-        out = {"theta_deg": theta, "current_A": s[:, 0]}
-        if self.stage == "chain":
-            x = gap(theta, p.p2, p.p1, p.p0)
-            F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
-            out |= {"x_m": x, "force_N": F, "torque_Nm": brake_torque(F, p.mu, tr["r_eff_m"])}
-        return out
+        d = {"meas": tr, "dt": tr["dt"], "r_eff": tr["r_eff_m"]}
+        return predict(self.stage, p, theta0, (), d, n_sub, self.method)
 
     def __call__(self, u: jnp.ndarray, data: dict) -> jnp.ndarray:
         res = []

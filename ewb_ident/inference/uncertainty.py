@@ -60,6 +60,10 @@ def parameter_uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) ->
     n, p = J.shape
     if p == 0:
         return Uncertainty([], np.zeros((0, 0)), 1.0, np.zeros(0))
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
+        # A model that diverged (e.g. the seed's Heun integrator at a long step): no
+        # standard errors, and no correlations to report.
+        return Uncertainty([None] * p, np.eye(p), float("inf"), np.full(p, np.inf))
     scale = np.linalg.norm(J, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     Js = J / scale

@@ -64,16 +64,20 @@ def motor_states(
     theta0_deg: jnp.ndarray,
     mechanisms: Sequence[AbstractMechanism],
     n_sub: int,
+    method: str = "exponential",
 ) -> jnp.ndarray:
     """Motor states (i [A], omega [rad/s], theta [rad]) at the sample times, shape (n, 3).
 
-    Without motor mechanisms this is :func:`ewb_ident.model.integrate.seed_motor_states` (exact).
+    Without motor mechanisms this is :func:`ewb_ident.model.integrate.seed_motor_states`:
+    exact over each sample for the ``exponential`` method, ``n_sub`` Heun sub-steps for
+    ``heun`` (the seed paper's integrator).
     """
     volt = [m for m in mechanisms if m.uses("voltage")]
     fric = [m for m in mechanisms if m.uses("motor_friction")]
     load = [m for m in mechanisms if m.uses("load_torque")]
     if not volt and not fric and not load:
-        return seed_motor_states(p, voltage_V, dt, theta0_deg, 1, "exponential", None)
+        n_seed = n_sub if method == "heun" else 1
+        return seed_motor_states(p, voltage_V, dt, theta0_deg, n_seed, method, None)
     A, B_V, B_tau = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
     h = dt / n_sub
     E, P1, _ = phi_matrices(A, h)
@@ -147,14 +151,14 @@ def play(y: jnp.ndarray, width: jnp.ndarray) -> jnp.ndarray:
 def _context(d: Mapping[str, Any]) -> dict[str, Any]:
     ctx: dict[str, Any] = {
         "dt": d["dt"],
-        "t": d["t"],
+        "t": d.get("t"),
         "scales": d.get("scales", {}),
         "data_signals": d.get("signals", {}),
     }
     meas = d["meas"]
     if "disc_speed_rad_s" in meas:
         ctx["disc_speed"] = meas["disc_speed_rad_s"]
-        ctx["omega_ref"] = d["omega_ref"]
+        ctx["omega_ref"] = d.get("omega_ref")
     return ctx
 
 
@@ -165,8 +169,11 @@ def predict(
     mechanisms: Sequence[AbstractMechanism],
     d: Mapping[str, Any],
     n_sub: int,
+    method: str = "exponential",
 ) -> dict[str, jnp.ndarray]:
-    """Predicted channels of one or several teacher-forced stages, or of ``"chain"``.
+    """Predicted channels of one or several teacher-forced stages, or of ``"chain"``: the
+    one evaluator of the chain, with or without mechanisms, for least squares, the
+    posterior and the diagnosis.
 
     Parameters
     ----------
@@ -181,12 +188,16 @@ def predict(
         ``omega_ref`` (rad/s), ``x_play`` (m; half width of the play filter on the
         measured displacement that drives a hysteresis state).
     n_sub
-        Motor sub-steps per sample (:func:`n_substeps`).
+        Motor sub-steps per sample (:func:`n_substeps`; for the seed model with the
+        ``heun`` method, :meth:`ewb_ident.model.integrate.Integrator.substeps`).
+    method
+        ``exponential`` (exact over each sample) or ``heun`` (the seed paper's), for the
+        motor without motor mechanisms.
     """
     if not isinstance(stages, str):
         out: dict[str, jnp.ndarray] = {}
         for s in stages:
-            out |= predict(s, p, theta0_deg, mechanisms, d, n_sub)
+            out |= predict(s, p, theta0_deg, mechanisms, d, n_sub, method)
         return out
     stage = stages
     meas = d["meas"]
@@ -205,7 +216,7 @@ def predict(
 
     out = {}
     if stage in ("motor", "chain"):
-        s = motor_states(p, meas["voltage_V"], d["dt"], theta0_deg, mechanisms, n_sub)
+        s = motor_states(p, meas["voltage_V"], d["dt"], theta0_deg, mechanisms, n_sub, method)
         theta = s[:, 2] * DEG_PER_RAD
         out["theta_deg"] = read("theta_deg", theta)
         out["current_A"] = read("current_A", s[:, 0])
