@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 from ewb_ident.data.metrics import channel_metrics
@@ -71,9 +72,7 @@ from ewb_ident.diagnosis.findings import (
     stderr_of,
     with_summary,
 )
-from ewb_ident.diagnosis.locate import (
-    score_check,
-)
+from ewb_ident.diagnosis.locate import Mismatch, score_check
 from ewb_ident.diagnosis.result import Candidate, DiagnosisResult, Finding
 from ewb_ident.diagnosis.session import (
     BIC_THRESHOLD,
@@ -142,6 +141,70 @@ def diagnose(
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+
+    def lap(step: str) -> None:
+        timings[step] = time.perf_counter() - t_start - sum(timings.values())
+
+    pool = _catalog_pool(catalog)
+    ses = Session(trace)
+    say = progress or (lambda text: None)
+    say("baseline fits of every stage")
+    ses.baseline()
+    lap("baseline_stages")
+    checks_before, cells, flagged = _locate(ses, trace)
+    lap("locate")
+    chain = _Chain.baseline(ses, trace)
+    lap("baseline_chain")
+    work = _explain(ses, pool, {m.stage for m in flagged}, bic_threshold, max_mechanisms, say)
+    lap("explain")
+    say("looking for physics outside the catalog")
+    _unknown(ses, work, bool(flagged), bic_threshold)
+    lap("unknown")
+    say("confirming the findings on the whole chain")
+    added, chain_ev, unconfirmed = _confirm(ses, chain, work, bic_threshold)
+    lap("chain")
+    checks_after = {
+        (c.stage, c.channel): c for s in ses.stages for c in ses.check(s, work.current[s])
+    }
+    stage_before = _stage_metrics(ses, checks_before)
+    stage_after = _stage_metrics(ses, checks_after)
+    findings = _findings(
+        ses, trace, chain, work, added, chain_ev, flagged, stage_before, stage_after
+    )
+    verdict, notes = _verdict(ses, work, findings, flagged, unconfirmed, bic_threshold)
+    timings["total"] = time.perf_counter() - t_start
+    return DiagnosisResult(
+        trace_name=trace.name,
+        verdict=verdict,
+        mismatches=tuple(flagged),
+        cells=tuple(cells),
+        findings=tuple(findings),
+        candidates=tuple(work.candidates),
+        baseline_metrics=chain_metrics(trace, chain.fits[0]) if chain.ok else {},
+        augmented_metrics=chain_metrics(trace, chain.fits[-1]) if chain.ok else {},
+        stage_metrics_before=stage_before,
+        stage_metrics_after=stage_after,
+        noise=dict(ses.noise),
+        checks_before=checks_before,
+        checks_after=checks_after,
+        chain_before=dict(chain.fits[0].predictions) if chain.ok else {},
+        chain_after=dict(chain.fits[-1].predictions) if chain.ok else {},
+        labels=ses.labels,
+        trace=trace,
+        timings=timings,
+        notes=tuple(notes),
+        corrected=corrected_of(trace, chain.fits, chain.data, chain.sigma)
+        if chain.ok and len(chain.fits) > 1
+        else None,
+        **model_tables(chain.fits, chain.ok),
+    )
+
+
+# ----------------------------------------------------------------------------- steps
+
+
+def _catalog_pool(catalog: Sequence[str] | None) -> list[AbstractMechanism]:
+    """The catalog's variants to try (all, or those of the ids named)."""
     pool = variants()
     if catalog is not None:
         known = {m.id for m in pool}
@@ -149,98 +212,86 @@ def diagnose(
         if bad:
             raise DiagnoseError(f"unknown catalog id(s) {bad}; the catalog is {sorted(known)}")
         pool = [m for m in pool if m.id in set(catalog)]
+    return pool
 
-    ses = Session(trace)
-    say = progress or (lambda text: None)
-    say("baseline fits of every stage")
-    ses.baseline()
-    timings["baseline_stages"] = time.perf_counter() - t_start
 
-    # 2. Locate.
-    checks_before = {
-        (c.stage, c.channel): c for s in ses.stages for c in ses.check(s, ses.base_fits[s])
-    }
-    cells = [m for c in checks_before.values() for m in score_check(c, ses.labels, trace.time_s)]
-    cells = [with_summary(m, checks_before, trace, ses.labels) for m in cells]
-    flagged_cells = sorted((m for m in cells if m.flagged), key=lambda m: -m.score)
-    located = {m.stage for m in flagged_cells}
-    timings["locate"] = time.perf_counter() - t_start - sum(timings.values())
+def _locate(ses: Session, trace: Trace) -> tuple[dict, list[Mismatch], list[Mismatch]]:
+    """Step 2: every stage's residual checked phase by phase; the flagged cells, most
+    severe first."""
+    checks = {(c.stage, c.channel): c for s in ses.stages for c in ses.check(s, ses.base_fits[s])}
+    cells = [m for c in checks.values() for m in score_check(c, ses.labels, trace.time_s)]
+    cells = [with_summary(m, checks, trace, ses.labels) for m in cells]
+    flagged = sorted((m for m in cells if m.flagged), key=lambda m: -m.score)
+    return checks, cells, flagged
 
-    # Chain baseline (from voltage).
-    chain_ok = trace.has("voltage_V") and trace.has("theta_deg")
-    chain_fits: list[AugFit] = []
-    chain_free: tuple[str, ...] = ()
-    if chain_ok:
-        chain_data, chain_free, chain_sigma, f0 = chain_baseline(ses, ses.base_messages)
-        chain_fits.append(f0)
-    timings["baseline_chain"] = time.perf_counter() - t_start - sum(timings.values())
 
-    # 3. Explain: forward selection over the catalog.
-    selected: list[AbstractMechanism] = []
-    candidates: list[Candidate] = []
-    evidence: dict[str, dict[str, float]] = {}
-    current = dict(ses.base_fits)  # stage -> latest fit covering it
+@dataclass
+class _Chain:
+    """The whole chain from the voltage: its data and weights, the free parameters, and
+    its fits (the baseline first, then one per confirmed finding)."""
+
+    ok: bool
+    data: Any = None
+    free: tuple[str, ...] = ()
+    sigma: Any = None
+    fits: list[AugFit] = field(default_factory=list)
+
+    @classmethod
+    def baseline(cls, ses: Session, trace: Trace) -> _Chain:
+        if not (trace.has("voltage_V") and trace.has("theta_deg")):
+            return cls(ok=False)
+        data, free, sigma, f0 = chain_baseline(ses, ses.base_messages)
+        return cls(ok=True, data=data, free=free, sigma=sigma, fits=[f0])
+
+
+#: One tried mechanism: its candidate record, its fit, evidence and fitted instance.
+_Tried = tuple[Candidate, AugFit, dict[str, float], AbstractMechanism]
+
+
+@dataclass
+class _Work:
+    """What the explain and unknown steps decide, for the steps after them."""
+
+    selected: list[AbstractMechanism] = field(default_factory=list)
+    candidates: list[Candidate] = field(default_factory=list)
+    evidence: dict[str, dict[str, float]] = field(default_factory=dict)
+    current: dict[str, AugFit] = field(default_factory=dict)  # stage -> latest fit of it
+    last_round: list[_Tried] = field(default_factory=list)
+    alternatives: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
+    corrections: list[tuple[str, AugFit, dict[str, float], Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
+    """Step 3: forward selection over the catalog while a stage is still located."""
+    work = _Work(current=dict(ses.base_fits))
     still = set(located)
-    last_round: list[tuple[Candidate, AugFit, dict[str, float], AbstractMechanism]] = []
-    alternatives: dict[str, list[tuple[str, float]]] = {}
     for rnd in range(1, max_mechanisms + 1):
         if not still:
             break
-        done = {m.variant for m in selected}
+        done = {m.variant for m in work.selected}
         results = []
         for tmpl in pool:
             if tmpl.variant in done:
                 continue
             say(f"round {rnd}: trying {tmpl.variant}")
-            mst = ses.mechanism_stages(tmpl)
-            if not mst or not set(mst) & still:
-                continue
-            if tmpl.applicable(ses.cols, ses.ctx):
-                continue
-            T = closure(mst, selected, ses)
-            ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
-            f0 = ses.fit(T, ms, explore=[False] * len(ms))
-            f1 = ses.fit(T, ms + [tmpl], explore=[False] * len(ms) + [True])
-            own = [c for st in mst for c in STAGE_OUTPUTS[st]]
-            ev = bic_evidence(f1, f0, ses.sigma_tf, own) | {"converged": float(f1.converged)}
-            mech = fitted_mechanism(f1, tmpl.variant)
-            se = f1.mechanism_stderr(mech)
-            reason = mech.plausible(mech.values(), se)
-            if not reason and ev["delta_bic"] > -bic_threshold:
-                reason = f"dBIC {ev['delta_bic']:.1f} > -{bic_threshold:g}"
-            if not reason and ev["explained_fraction"] < MIN_EXPLAINED:
-                reason = (
-                    f"explains only {100 * ev['explained_fraction']:.0f} % of the excess "
-                    "residual at its stages"
-                )
-            cand = Candidate(
-                variant=tmpl.variant,
-                effect=tmpl.id,
-                stages=T,
-                round=rnd,
-                delta_bic=ev["delta_bic"],
-                delta_chi2=ev["delta_chi2"],
-                explained=ev["explained_fraction"],
-                p_value=ev["lr_p_value"],
-                params=mech.values(),
-                stderr=se,
-                rejected=reason,
-            )
-            results.append((cand, f1, ev, mech))
+            tried = _try(ses, tmpl, work.selected, still, rnd, bic_threshold)
+            if tried is not None:
+                results.append(tried)
         ok = [r for r in results if not r[0].rejected]
         best = min(ok, key=lambda r: r[0].delta_bic) if ok else None
-        last_round = results if best is None else []
+        work.last_round = results if best is None else []
         for r in results:
             sel = best is not None and r[0] is best[0]
-            candidates.append(Candidate(**{**r[0].__dict__, "selected": sel}) if sel else r[0])
+            work.candidates.append(Candidate(**{**r[0].__dict__, "selected": sel}) if sel else r[0])
         if best is None:
             break
         cand, f1, ev, mech = best
-        selected.append(mech)
-        evidence[mech.variant] = ev
+        work.selected.append(mech)
+        work.evidence[mech.variant] = ev
         # Rivals the trace cannot tell apart from the choice: also supported, and within
         # the evidence threshold of it (a Bayes factor under about 150).
-        alternatives[mech.variant] = [
+        work.alternatives[mech.variant] = [
             (r[0].effect, r[0].delta_bic)
             for r in ok
             if r is not best
@@ -248,26 +299,68 @@ def diagnose(
             and r[0].delta_bic - cand.delta_bic < bic_threshold
         ]
         for s in f1.stages:
-            current[s] = f1
+            work.current[s] = f1
         for n in ses.free_of(f1.stages):
             ses.values[n] = f1.values[n]
         # The next round tries the stages located at first and any located now: a
         # weaker second effect may hide under the first one's residual (the targeted
         # evidence test is more sensitive than the location test).
-        still = set(located) | located_stages(ses, current, structured=True)
-    timings["explain"] = time.perf_counter() - t_start - sum(timings.values())
+        still = set(located) | located_stages(ses, work.current, structured=True)
+    return work
 
-    say("looking for physics outside the catalog")
-    # 4. Unknown physics at stages still located.
-    corrections: list[tuple[str, AugFit, dict[str, float], Any]] = []
-    notes_explain: list[str] = []
+
+def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
+    """Fit one catalog mechanism at its stages on top of those selected, and judge it;
+    ``None`` when it does not act on a located stage or the trace cannot show it."""
+    mst = ses.mechanism_stages(tmpl)
+    if not mst or not set(mst) & still:
+        return None
+    if tmpl.applicable(ses.cols, ses.ctx):
+        return None
+    T = closure(mst, selected, ses)
+    ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
+    f0 = ses.fit(T, ms, explore=[False] * len(ms))
+    f1 = ses.fit(T, ms + [tmpl], explore=[False] * len(ms) + [True])
+    own = [c for st in mst for c in STAGE_OUTPUTS[st]]
+    ev = bic_evidence(f1, f0, ses.sigma_tf, own) | {"converged": float(f1.converged)}
+    mech = fitted_mechanism(f1, tmpl.variant)
+    se = f1.mechanism_stderr(mech)
+    reason = mech.plausible(mech.values(), se)
+    if not reason and ev["delta_bic"] > -bic_threshold:
+        reason = f"dBIC {ev['delta_bic']:.1f} > -{bic_threshold:g}"
+    if not reason and ev["explained_fraction"] < MIN_EXPLAINED:
+        reason = (
+            f"explains only {100 * ev['explained_fraction']:.0f} % of the excess "
+            "residual at its stages"
+        )
+    cand = Candidate(
+        variant=tmpl.variant,
+        effect=tmpl.id,
+        stages=T,
+        round=rnd,
+        delta_bic=ev["delta_bic"],
+        delta_chi2=ev["delta_chi2"],
+        explained=ev["explained_fraction"],
+        p_value=ev["lr_p_value"],
+        params=mech.values(),
+        stderr=se,
+        rejected=reason,
+    )
+    return cand, f1, ev, mech
+
+
+def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float) -> None:
+    """Step 4: a sparse generic correction at each stage still located, unless a held
+    back catalog rival removes as much as it does (then the rival is promoted)."""
     # Only a residual clearly above the noise (not merely serially correlated) calls for
     # physics beyond the catalog once a mechanism has been added: what remains at the
     # noise level then is the approximation of the added physics.
-    still = located_stages(ses, current, structured=not selected) if flagged_cells else set()
-    remaining = ranked_stages(ses, current, still)
+    still = (
+        located_stages(ses, work.current, structured=not work.selected) if any_flagged else set()
+    )
+    remaining = ranked_stages(ses, work.current, still)
     for s in remaining[:MAX_CORRECTIONS]:
-        res = fit_generic(ses, s, selected, current, bic_threshold)
+        res = fit_generic(ses, s, work.selected, work.current, bic_threshold)
         if res is None:
             continue
         f_gen, ev, sel = res
@@ -277,118 +370,123 @@ def diagnose(
         # bent by a nonlinear stage).
         rivals = [
             r
-            for r in last_round
+            for r in work.last_round
             if r[0].rejected.startswith("explains only")
             and r[1].stages == f_gen.stages
             and r[2]["delta_chi2"] >= CATALOG_SHARE * ev["delta_chi2"]
         ]
         if rivals:
-            cand, f1, ev1, mech = min(rivals, key=lambda r: r[0].delta_bic)
-            note = (
-                f"explains {100 * cand.explained:.0f} % of the excess residual, "
-                f"{100 * cand.delta_chi2 / ev['delta_chi2']:.0f} % of what a generic "
-                "correction at its stage removes"
-            )
-            k = next(i for i, c in enumerate(candidates) if c is cand)
-            candidates[k] = Candidate(**{**cand.__dict__, "selected": True, "rejected": ""})
-            # One rival per stage set: a second located stage with the same stages must
-            # not promote it again (it once did, and the candidate was no longer in the
-            # list by identity) nor add another rival for the mismatch it explains.
-            last_round = [r for r in last_round if r[1].stages != f1.stages]
-            selected.append(mech)
-            evidence[mech.variant] = ev1 | {"generic_delta_chi2": ev["delta_chi2"]}
-            notes_explain.append(f"{mech.variant}: {note}")
-            for st in f1.stages:
-                current[st] = f1
+            _promote(work, min(rivals, key=lambda r: r[0].delta_bic), ev)
             continue
-        corrections.append((s, f_gen, ev, sel))
+        work.corrections.append((s, f_gen, ev, sel))
         for st in f_gen.stages:
-            current[st] = f_gen
-    timings["unknown"] = time.perf_counter() - t_start - sum(timings.values())
+            work.current[st] = f_gen
 
-    say("confirming the findings on the whole chain")
-    # 5. The whole chain with the findings added one at a time. The chain runs from the
-    # logged voltage, which carries no sensor noise into the model: a finding must also
-    # improve it (dBIC <= -threshold). That guards against explaining artefacts of a
-    # teacher-forced stage (noise on its measured input bends a nonlinear stage's
-    # output, a bias no mechanism should take the blame for).
-    added: list[AbstractMechanism] = list(selected) + [
-        fitted_mechanism(f, f"unexplained_{s}") for s, f, _, _ in corrections
+
+def _promote(work: _Work, rival: _Tried, generic_ev: dict[str, float]) -> None:
+    """Select a held-back catalog rival in place of a generic correction."""
+    cand, f1, ev1, mech = rival
+    note = (
+        f"explains {100 * cand.explained:.0f} % of the excess residual, "
+        f"{100 * cand.delta_chi2 / generic_ev['delta_chi2']:.0f} % of what a generic "
+        "correction at its stage removes"
+    )
+    k = next(i for i, c in enumerate(work.candidates) if c is cand)
+    work.candidates[k] = Candidate(**{**cand.__dict__, "selected": True, "rejected": ""})
+    # One rival per stage set: a second located stage with the same stages must not
+    # promote it again (it once did, and the candidate was no longer in the list by
+    # identity) nor add another rival for the mismatch it explains.
+    work.last_round = [r for r in work.last_round if r[1].stages != f1.stages]
+    work.selected.append(mech)
+    work.evidence[mech.variant] = ev1 | {"generic_delta_chi2": generic_ev["delta_chi2"]}
+    work.notes.append(f"{mech.variant}: {note}")
+    for st in f1.stages:
+        work.current[st] = f1
+
+
+def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
+    """Step 5: the whole chain with the findings added one at a time.
+
+    The chain runs from the logged voltage, which carries no sensor noise into the
+    model: a finding must also improve it (dBIC <= -threshold). That guards against
+    explaining artefacts of a teacher-forced stage (noise on its measured input bends a
+    nonlinear stage's output, a bias no mechanism should take the blame for). Returns
+    the findings kept, the chain evidence of each, and those the chain did not confirm.
+    """
+    added: list[AbstractMechanism] = list(work.selected) + [
+        fitted_mechanism(f, f"unexplained_{s}") for s, f, _, _ in work.corrections
     ]
     chain_ev: dict[str, dict[str, float]] = {}
     unconfirmed: list[tuple[AbstractMechanism, dict[str, float]]] = []
-    if chain_ok:
-        kept: list[AbstractMechanism] = []
-        for m in added:
-            prev = chain_fits[-1]
-            mechs = [mechanism_start(x, prev) for x in [*kept, m]]
-            f = fit_mechanisms(
-                chain_data,
-                ("chain",),
-                chain_free,
-                mechs,
-                tuple(chain_sigma),
-                start={n: prev.values[n] for n in chain_free},
-                explore=[False] * len(mechs),
-                # ... and from the teacher-forced fits with the mechanisms
-                alt_starts=[{n: ses.values[n] for n in chain_free if n in ses.values}],
-            )
-            ev = bic_evidence(f, prev, chain_sigma)
-            if ev["delta_bic"] <= -bic_threshold:
-                kept.append(m)
-                chain_fits.append(f)
-                chain_ev[m.variant] = ev
-            else:
-                unconfirmed.append((m, ev))
-        added = kept
-    timings["chain"] = time.perf_counter() - t_start - sum(timings.values())
+    if not chain.ok:
+        return added, chain_ev, unconfirmed
+    kept: list[AbstractMechanism] = []
+    for m in added:
+        prev = chain.fits[-1]
+        mechs = [mechanism_start(x, prev) for x in [*kept, m]]
+        f = fit_mechanisms(
+            chain.data,
+            ("chain",),
+            chain.free,
+            mechs,
+            tuple(chain.sigma),
+            start={n: prev.values[n] for n in chain.free},
+            explore=[False] * len(mechs),
+            # ... and from the teacher-forced fits with the mechanisms
+            alt_starts=[{n: ses.values[n] for n in chain.free if n in ses.values}],
+        )
+        ev = bic_evidence(f, prev, chain.sigma)
+        if ev["delta_bic"] <= -bic_threshold:
+            kept.append(m)
+            chain.fits.append(f)
+            chain_ev[m.variant] = ev
+        else:
+            unconfirmed.append((m, ev))
+    return kept, chain_ev, unconfirmed
 
-    # Results.
-    checks_after = {(c.stage, c.channel): c for s in ses.stages for c in ses.check(s, current[s])}
 
-    stage_before = {
+def _stage_metrics(ses: Session, checks: dict) -> dict[str, dict[str, Any]]:
+    """Metrics of each stage's channels from its checks."""
+    return {
         s: {
             ch: channel_metrics(c.predicted, c.measured)
-            for (st, ch), c in checks_before.items()
+            for (st, ch), c in checks.items()
             if st == s
         }
         for s in ses.stages
     }
-    stage_after = {
-        s: {
-            ch: channel_metrics(c.predicted, c.measured)
-            for (st, ch), c in checks_after.items()
-            if st == s
-        }
-        for s in ses.stages
-    }
+
+
+def _findings(
+    ses, trace, chain, work, added, chain_ev, flagged, stage_before, stage_after
+) -> list[Finding]:
+    """A finding, with its words and its metrics before and after, per mechanism kept."""
     findings: list[Finding] = []
-    by_variant = {f"unexplained_{s}": (s, f, ev, sel) for s, f, ev, sel in corrections}
+    by_variant = {f"unexplained_{s}": (s, f, ev, sel) for s, f, ev, sel in work.corrections}
     for k, mech in enumerate(added):
-        before = (
-            chain_metrics(trace, chain_fits[k]) if chain_ok else stage_before.get(mech.stage, {})
-        )
-        after = (
-            chain_metrics(trace, chain_fits[k + 1])
-            if chain_ok
-            else stage_after.get(mech.stage, {})
-        )
+        if chain.ok:
+            before = chain_metrics(trace, chain.fits[k])
+            after = chain_metrics(trace, chain.fits[k + 1])
+        else:
+            before = stage_before.get(mech.stage, {})
+            after = stage_after.get(mech.stage, {})
         if isinstance(mech, GenericCorrection):
             s, f_gen, ev, sel = by_variant[mech.variant]
             ev = ev | chain_prefixed(chain_ev.get(mech.variant))
-            findings.append(
-                generic_finding(ses, mech, f_gen, ev, sel, flagged_cells, before, after)
-            )
+            findings.append(generic_finding(ses, mech, f_gen, ev, sel, flagged, before, after))
         else:
-            fit_m = current[mech.stage] if mech.stage in current else None
+            fit_m = work.current[mech.stage] if mech.stage in work.current else None
             se = stderr_of(mech, fit_m, ses)
-            ev = evidence[mech.variant] | chain_prefixed(chain_ev.get(mech.variant))
-            alts = tuple(alternatives.get(mech.variant, ()))
+            ev = work.evidence[mech.variant] | chain_prefixed(chain_ev.get(mech.variant))
+            alts = tuple(work.alternatives.get(mech.variant, ()))
             ctx = refitted_ctx(ses, fit_m)
-            found = make_finding(ses, mech, se, ev, flagged_cells, before, after, alts, ctx)
-            findings.append(found)
+            findings.append(make_finding(ses, mech, se, ev, flagged, before, after, alts, ctx))
+    return findings
 
-    notes = list(ses.base_messages) + notes_explain
+
+def _verdict(ses, work, findings, flagged, unconfirmed, bic_threshold) -> tuple[str, list[str]]:
+    """The verdict (``none`` only when nothing is located) and the notes."""
+    notes = list(ses.base_messages) + work.notes
     for m, ev in unconfirmed:
         notes.append(
             f"{m.variant} improved the {m.stage} stage fitted from its measured input, but "
@@ -396,44 +494,17 @@ def diagnose(
             f"-{bic_threshold:g}): not reported, as the mismatch it absorbed is within what "
             "noise on the stage's measured input produces"
         )
-    if not flagged_cells:
+    if not flagged:
         verdict = "none"
     elif any(f.catalog for f in findings):
         verdict = "found"
     else:  # located, not explained by the catalog: never "none"
         verdict = "unexplained"
-    if flagged_cells and not findings:  # say where, when not even a correction helps
+    if flagged and not findings:  # say where, when not even a correction helps
         notes.append(
             "a mismatch is located ("
-            + ", ".join(f"{m.stage} stage, {m.phase}: {m.score:.1f}x" for m in flagged_cells[:3])
+            + ", ".join(f"{m.stage} stage, {m.phase}: {m.score:.1f}x" for m in flagged[:3])
             + " the noise), but neither a catalog mechanism nor a generic correction "
             "explains it beyond the noise in the whole chain: unexplained"
         )
-    timings["total"] = time.perf_counter() - t_start
-    base_metrics = chain_metrics(trace, chain_fits[0]) if chain_ok else {}
-    aug_metrics = chain_metrics(trace, chain_fits[-1]) if chain_ok else {}
-    return DiagnosisResult(
-        trace_name=trace.name,
-        verdict=verdict,
-        mismatches=tuple(flagged_cells),
-        cells=tuple(cells),
-        findings=tuple(findings),
-        candidates=tuple(candidates),
-        baseline_metrics=base_metrics,
-        augmented_metrics=aug_metrics,
-        stage_metrics_before=stage_before,
-        stage_metrics_after=stage_after,
-        noise=dict(ses.noise),
-        checks_before=checks_before,
-        checks_after=checks_after,
-        chain_before=dict(chain_fits[0].predictions) if chain_ok else {},
-        chain_after=dict(chain_fits[-1].predictions) if chain_ok else {},
-        labels=ses.labels,
-        trace=trace,
-        timings=timings,
-        notes=tuple(notes),
-        corrected=corrected_of(trace, chain_fits, chain_data, chain_sigma)
-        if chain_ok and len(chain_fits) > 1
-        else None,
-        **model_tables(chain_fits, chain_ok),
-    )
+    return verdict, notes
