@@ -133,3 +133,22 @@ def test_layers_are_folders():
                                                                "study.py")
     )
     assert not loose, f"modules outside the layers: {loose}"
+
+
+def test_the_facade_resolves_every_public_name():
+    """Was: after the move into folders, ``ewb_ident.fit`` (the README's Python example)
+    looked for ``ewb_ident.least_squares`` and raised; the lazy façade names each
+    name's module, and the static imports for type checkers name the same objects."""
+    import ewb_ident
+
+    tree = ast.parse((PACKAGE / "__init__.py").read_text(encoding="utf-8"))
+    static = {
+        a.asname or a.name: node.module
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("ewb_ident.")
+        for a in node.names
+    }
+    assert set(static) == set(ewb_ident.__all__)
+    for name in ewb_ident.__all__:
+        module = __import__(static[name], fromlist=[name])
+        assert getattr(ewb_ident, name) is getattr(module, name), name
