@@ -26,6 +26,7 @@ from ewb_ident.inference.log_posterior import (
     RHAT_MAX,
     TAU_RELIABLE,
     SampleError,
+    SamplerSettings,
     batched,
     key,
     to_physical_columns,
@@ -113,11 +114,14 @@ class _Run:
 
 
 def run_chains(
-    lp, fits, names, u0, priors, n_walkers, n_steps, max_steps, n_ensembles, min_ess, seed,
+    lp, fits, names, u0, priors, settings: SamplerSettings,
     progress,
 ) -> _Run:  # fmt: skip
     """Independent emcee ensembles from the least-squares optimum, extended until every
     convergence criterion holds or ``max_steps`` is reached."""
+    s = settings
+    n_walkers, n_steps, max_steps = s.n_walkers, s.n_steps, s.max_steps
+    n_ensembles, min_ess, seed = s.n_ensembles, s.min_ess, s.seed
     excluded = [
         n
         for n, v in zip(names, to_physical_columns(names, u0), strict=True)

@@ -57,6 +57,57 @@ class SampleError(ValueError):
     """A posterior that cannot be set up as asked (the message says what to change)."""
 
 
+@dataclass(frozen=True)
+class SamplerSettings:
+    """How the ensembles run and what is summarised (the keyword arguments of
+    :func:`ewb_ident.inference.posterior.sample`, which documents each)."""
+
+    noise_model: str = "auto"
+    n_walkers: int | None = None
+    n_steps: int = 2000
+    max_steps: int | None = None
+    n_ensembles: int = 2
+    min_ess: float = 400.0
+    hdi_prob: float = 0.9
+    max_draws: int = 1000
+    seed: int = 0
+
+    def check(self) -> None:
+        """Raise :class:`SampleError` naming the first setting that cannot be used."""
+        s = self
+        if s.noise_model not in NOISE_MODELS:
+            raise SampleError(
+                f"noise model must be one of {', '.join(NOISE_MODELS)}, got {s.noise_model!r}"
+            )
+        if not isinstance(s.n_ensembles, int) or s.n_ensembles < 2:
+            raise SampleError(
+                f"n_ensembles must be an integer >= 2, got {s.n_ensembles!r}: R-hat needs "
+                "independent ensembles (the walkers of one ensemble are not independent chains)"
+            )
+        if not isinstance(s.n_steps, int) or s.n_steps < 10:
+            raise SampleError(f"n_steps must be an integer >= 10, got {s.n_steps!r}")
+        if s.max_steps is not None and (
+            not isinstance(s.max_steps, int) or s.max_steps < s.n_steps
+        ):
+            raise SampleError(
+                f"max_steps must be an integer >= n_steps ({s.n_steps}), got {s.max_steps!r}"
+            )
+        if s.n_walkers is not None and (
+            not isinstance(s.n_walkers, int) or s.n_walkers % 2 or s.n_walkers < 4
+        ):
+            raise SampleError(f"n_walkers must be an even integer >= 4, got {s.n_walkers!r}")
+        if not 0.0 < s.hdi_prob < 1.0:
+            raise SampleError(f"hdi_prob must lie strictly between 0 and 1, got {s.hdi_prob!r}")
+        if not s.min_ess > 0:
+            raise SampleError(f"min_ess must be > 0, got {s.min_ess!r}")
+        if not isinstance(s.max_draws, int) or s.max_draws < s.n_ensembles:
+            raise SampleError(
+                f"max_draws must be an integer >= n_ensembles, got {s.max_draws!r}"
+            )
+        if not isinstance(s.seed, int) or s.seed < 0:
+            raise SampleError(f"seed must be a non-negative integer, got {s.seed!r}")
+
+
 # ----------------------------------------------------------------------------- model
 
 

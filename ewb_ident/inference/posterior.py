@@ -59,7 +59,7 @@ from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_PARAMS, STAGES, TEACHER_F
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.chains import poor, restart_chain, run_chains
 from ewb_ident.inference.least_squares import fit
-from ewb_ident.inference.log_posterior import NOISE_MODELS, SampleError, build
+from ewb_ident.inference.log_posterior import SampleError, SamplerSettings, build
 from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
 from ewb_ident.inference.problem import FitError
@@ -90,34 +90,6 @@ def _stage_list(stage: str | Sequence[str], traces: Sequence[Trace]) -> tuple[st
             "holds every stage's parameters)"
         )
     return stages
-
-
-def _check_options(
-    noise_model, n_walkers, n_steps, max_steps, n_ensembles, hdi_prob, min_ess, max_draws, seed
-):
-    if noise_model not in NOISE_MODELS:
-        raise SampleError(
-            f"noise model must be one of {', '.join(NOISE_MODELS)}, got {noise_model!r}"
-        )
-    if not isinstance(n_ensembles, int) or n_ensembles < 2:
-        raise SampleError(
-            f"n_ensembles must be an integer >= 2, got {n_ensembles!r}: R-hat needs independent "
-            "ensembles (the walkers of one ensemble are not independent chains)"
-        )
-    if not isinstance(n_steps, int) or n_steps < 10:
-        raise SampleError(f"n_steps must be an integer >= 10, got {n_steps!r}")
-    if max_steps is not None and (not isinstance(max_steps, int) or max_steps < n_steps):
-        raise SampleError(f"max_steps must be an integer >= n_steps ({n_steps}), got {max_steps!r}")
-    if n_walkers is not None and (not isinstance(n_walkers, int) or n_walkers % 2 or n_walkers < 4):
-        raise SampleError(f"n_walkers must be an even integer >= 4, got {n_walkers!r}")
-    if not 0.0 < hdi_prob < 1.0:
-        raise SampleError(f"hdi_prob must lie strictly between 0 and 1, got {hdi_prob!r}")
-    if not min_ess > 0:
-        raise SampleError(f"min_ess must be > 0, got {min_ess!r}")
-    if not isinstance(max_draws, int) or max_draws < n_ensembles:
-        raise SampleError(f"max_draws must be an integer >= n_ensembles, got {max_draws!r}")
-    if not isinstance(seed, int) or seed < 0:
-        raise SampleError(f"seed must be a non-negative integer, got {seed!r}")
 
 
 # ----------------------------------------------------------------------------- sample
@@ -196,22 +168,22 @@ def sample(
     traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
     if not traces:
         raise SampleError("no traces to sample")
-    _check_options(
-        noise_model, n_walkers, n_steps, max_steps, n_ensembles, hdi_prob, min_ess, max_draws, seed
+    settings = SamplerSettings(
+        noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
     )
+    settings.check()
     stages = _stage_list(stage, traces)
     prior_table = load_priors(priors)
     with jax.enable_x64(True):
+        settings = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
         return _sample(
-            traces, stages, free, per_trace, fixed, prior_table, noise_model, n_walkers,
-            n_steps, max_steps or 10 * n_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed,
-            integrator, progress,
-        )  # fmt: skip
+            traces, stages, free, per_trace, fixed, prior_table, settings, integrator, progress
+        )
 
 
 def _sample(
-    traces, stages, free, per_trace, fixed, priors, noise_model, n_walkers, n_steps,
-    max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed, integrator, progress,
+    traces, stages, free, per_trace, fixed, priors, settings: SamplerSettings, integrator,
+    progress,
 ) -> PosteriorResult:  # fmt: skip
     t_start = time.perf_counter()
     free_l = None if free is None else list(free)
@@ -249,15 +221,12 @@ def _sample(
             )
     t_fit = time.perf_counter()
 
-    lp, names, u0, segs = build(fits, priors, noise_model, [t.time_s for t in traces])
-    run = run_chains(
-        lp, fits, names, u0, priors, n_walkers, n_steps, max_steps, n_ensembles, min_ess, seed,
-        progress,
-    )  # fmt: skip
+    lp, names, u0, segs = build(fits, priors, settings.noise_model, [t.time_s for t in traces])
+    run = run_chains(lp, fits, names, u0, priors, settings, progress)
+    held = fits[0].params[0].as_dict()
     result = assemble(
-        fits, traces, stages, lp, names, segs, run.samplers, run.chains, run.diag, priors,
-        hdi_prob, min_ess, max_draws, seed, run.seq, notes, fixed, fits[0].params[0].as_dict(),
-    )  # fmt: skip
+        fits, traces, stages, lp, names, segs, run, priors, settings, notes, fixed, held
+    )
     return dataclasses.replace(result, timing=run.timing(t_start, t_fit))
 
 
@@ -312,9 +281,10 @@ def sample_corrected(
     SampleError, PriorError
         Settings, priors or mechanisms that cannot be used with this trace.
     """
-    _check_options(
-        noise_model, n_walkers, n_steps, max_steps, n_ensembles, hdi_prob, min_ess, max_draws, seed
+    settings = SamplerSettings(
+        noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
     )
+    settings.check()
     prior_table = load_priors(priors)
     with jax.enable_x64(True):
         t_start = time.perf_counter()
@@ -323,14 +293,12 @@ def sample_corrected(
         table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
         t_fit = time.perf_counter()
         lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
-        run = run_chains(
-            lp, [start], names, u0, table, n_walkers, n_steps, max_steps or 10 * n_steps,
-            n_ensembles, min_ess, seed, progress,
-        )  # fmt: skip
+        longest = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
+        run = run_chains(lp, [start], names, u0, table, longest, progress)
         notes = [f"least-squares start (corrected chain): {w}" for w in cf.warnings]
         result = assemble(
-            [start], (trace,), ("chain",), lp, names, segs, run.samplers, run.chains, run.diag,
-            table, hdi_prob, min_ess, max_draws, seed, run.seq, notes, None, cf.params,
+            [start], (trace,), ("chain",), lp, names, segs, run, table, settings, notes, None,
+            cf.params,
         )  # fmt: skip
     return dataclasses.replace(
         result, timing=run.timing(t_start, t_fit), mechanisms=tuple(cf.mechanisms)

@@ -27,6 +27,7 @@ from ewb_ident.inference.log_posterior import (
     RIDGE,
     STUCK,
     TAU_RELIABLE,
+    SamplerSettings,
     batched,
     hint_of,
     info_of,
@@ -219,9 +220,15 @@ def entry(x: np.ndarray, hdi_prob: float, **more: Any) -> dict[str, Any]:
 
 
 def assemble(
-    fits, traces, stages, lp, names, segs, samplers, chains, diag, priors, hdi_prob, min_ess,
-    max_draws, seed, seq, notes, fixed, held,
+    fits, traces, stages, lp, names, segs, run, priors, settings: SamplerSettings, notes, fixed,
+    held,
 ) -> PosteriorResult:  # fmt: skip
+    """The result record from the chains of ``run`` (:func:`~ewb_ident.inference.chains.
+    run_chains`): intervals, diagnostics, identifiability, predictive bands."""
+    samplers, chains, diag, seq = run.samplers, run.chains, run.diag, run.seq
+    hdi_prob, min_ess, max_draws, seed = (
+        settings.hdi_prob, settings.min_ess, settings.max_draws, settings.seed
+    )
     E, (N, W, D), S = len(chains), chains[0].shape, len(segs)
     burn, thin = diag["burn"], diag["thin"]
     kept = [c[burn::thin] for c in chains]
