@@ -1,8 +1,8 @@
 """ewb-ident: fit, quantify and diagnose a physical model of an EWB test rig.
 
-Turn on float64 before use (the CLI does): ``jax.config.update("jax_enable_x64", True)``.
+Every public function computes in float64 whatever JAX's global setting
+(:mod:`ewb_ident.model.precision`).
 
->>> import jax; jax.config.update("jax_enable_x64", True)
 >>> import ewb_ident as ei
 >>> trace = ei.read_trace("datasets/steps_200hz.csv")
 >>> result = ei.fit(trace)              # whole chain from voltage

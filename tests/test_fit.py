@@ -180,3 +180,24 @@ def test_a_diverging_seed_integrator_is_reported_not_raised():
     assert "Heun's method at the seed's step is unstable" in words
     assert "not finite where the solver stopped" in words
     json.loads(json_text(res.to_json()))  # the contract's JSON is still written
+
+
+def test_the_library_computes_in_float64_when_the_caller_did_not_ask():
+    """One precision policy: a script that never turns on JAX's 64-bit mode gets the
+    same fit, to the last digit, as the CLI (which does)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import jax, ewb_ident as ei\n"
+        "assert not jax.config.jax_enable_x64\n"
+        f"r = ei.fit(ei.read_trace({str(DATA / 'steps_200hz.csv')!r}), stage='force')\n"
+        "print(repr(r.values['a']), repr(r.values['c']))\n"
+        "assert not jax.config.jax_enable_x64\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    here = fit(read_trace(DATA / "steps_200hz.csv"), stage="force")
+    assert out.stdout.split() == [repr(here.values["a"]), repr(here.values["c"])]

@@ -25,6 +25,7 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
+from ewb_ident.model.precision import float64
 
 
 def corrected_of(trace: Trace, chain_fits, data, sigma) -> CorrectedFit | None:
@@ -170,6 +171,7 @@ def mechanism_templates(names: Sequence[str]) -> list[AbstractMechanism]:
     return out
 
 
+@float64
 def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
     """Fit the seed chain augmented by catalog mechanisms, from the voltage.
 

@@ -93,10 +93,12 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
+from ewb_ident.model.precision import float64
 
 # ----------------------------------------------------------------------------- main
 
 
+@float64
 def diagnose(
     trace: Trace,
     *,

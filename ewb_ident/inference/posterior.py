@@ -51,7 +51,6 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -64,6 +63,7 @@ from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
 from ewb_ident.inference.problem import FitError
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
+from ewb_ident.model.precision import float64
 
 
 def _stage_list(stage: str | Sequence[str], traces: Sequence[Trace]) -> tuple[str, ...]:
@@ -95,6 +95,7 @@ def _stage_list(stage: str | Sequence[str], traces: Sequence[Trace]) -> tuple[st
 # ----------------------------------------------------------------------------- sample
 
 
+@float64
 def sample(
     traces: Trace | Sequence[Trace],
     *,
@@ -174,11 +175,10 @@ def sample(
     settings.check()
     stages = _stage_list(stage, traces)
     prior_table = load_priors(priors)
-    with jax.enable_x64(True):
-        settings = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
-        return _sample(
-            traces, stages, free, per_trace, fixed, prior_table, settings, integrator, progress
-        )
+    settings = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
+    return _sample(
+        traces, stages, free, per_trace, fixed, prior_table, settings, integrator, progress
+    )
 
 
 def _sample(
@@ -230,6 +230,7 @@ def _sample(
     return dataclasses.replace(result, timing=run.timing(t_start, t_fit))
 
 
+@float64
 def sample_corrected(
     trace: Trace,
     corrected: Any,
@@ -286,20 +287,19 @@ def sample_corrected(
     )
     settings.check()
     prior_table = load_priors(priors)
-    with jax.enable_x64(True):
-        t_start = time.perf_counter()
-        cf = corrected
-        start = _corrected_start(trace, corrected)
-        table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
-        t_fit = time.perf_counter()
-        lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
-        longest = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
-        run = run_chains(lp, [start], names, u0, table, longest, progress)
-        notes = [f"least-squares start (corrected chain): {w}" for w in cf.warnings]
-        result = assemble(
-            [start], (trace,), ("chain",), lp, names, segs, run, table, settings, notes, None,
-            cf.params,
-        )  # fmt: skip
+    t_start = time.perf_counter()
+    cf = corrected
+    start = _corrected_start(trace, corrected)
+    table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
+    t_fit = time.perf_counter()
+    lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
+    longest = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
+    run = run_chains(lp, [start], names, u0, table, longest, progress)
+    notes = [f"least-squares start (corrected chain): {w}" for w in cf.warnings]
+    result = assemble(
+        [start], (trace,), ("chain",), lp, names, segs, run, table, settings, notes, None,
+        cf.params,
+    )  # fmt: skip
     return dataclasses.replace(
         result, timing=run.timing(t_start, t_fit), mechanisms=tuple(cf.mechanisms)
     )

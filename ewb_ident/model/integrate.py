@@ -38,6 +38,7 @@ from jax.typing import ArrayLike
 
 from ewb_ident.model.params import EWBParams
 from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
+from ewb_ident.model.precision import float64
 
 #: ``tau(state, params) -> N*m``: a load torque on the motor from the state (i, omega,
 #: theta [rad]). It must be a hashable, pure function (it is a static argument of jit).
@@ -213,6 +214,7 @@ def seed_motor_states(
     return states
 
 
+@float64
 def simulate_motor(
     params: EWBParams,
     voltage_V: ArrayLike,
@@ -286,6 +288,7 @@ def chain_from_theta(
     return {"x_m": x, "force_N": F, "torque_Nm": brake_torque(F, params.mu, r_eff_m)}
 
 
+@float64
 def simulate_chain(
     params: EWBParams,
     voltage_V: ArrayLike,
