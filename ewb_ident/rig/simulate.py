@@ -347,39 +347,10 @@ def simulate_rig(
     clean
         Only with ``return_clean=True``.
     """
-    if not isinstance(params, RigParams):
-        raise RigError(f"params must be a RigParams, got {type(params).__name__}")
-    if not isinstance(noise, SensorNoise):
-        raise RigError(f"noise must be a SensorNoise, got {type(noise).__name__}")
-    check_finite("simulate_rig", sample_rate_hz=sample_rate_hz, theta0_deg=theta0_deg)
-    if not 100.0 <= sample_rate_hz <= 1000.0:
-        raise RigError(f"sample_rate_hz must be within 100 to 1000 Hz, got {sample_rate_hz!r}")
-    check_positive("simulate_rig", fine_step_s=fine_step_s)
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise RigError(f"seed must be a non-negative integer, got {seed!r}")
+    _check_request(params, noise, sample_rate_hz, theta0_deg, fine_step_s, seed)
     eff = resolve_effects(effects)
     dt = 1.0 / sample_rate_hz
-
-    if profile == "voltage":
-        volts_in = profile_options.get("voltage_V")
-        if volts_in is None:
-            raise RigError("profile 'voltage' needs voltage_V=array (one value per sample, V)")
-        volts_in = np.asarray(volts_in, dtype=np.float64)
-        if volts_in.ndim != 1 or volts_in.size < 2 or not np.all(np.isfinite(volts_in)):
-            raise RigError(
-                "voltage_V must be a 1-D array of at least 2 finite values, got shape "
-                f"{volts_in.shape}"
-            )
-        n = volts_in.size
-        if duration_s is not None and abs((n - 1) * dt - duration_s) > 0.5 * dt:
-            raise RigError(
-                f"voltage_V has {n} samples = {(n - 1) * dt:.6g} s at {sample_rate_hz} Hz, "
-                f"but duration_s={duration_s!r}; leave duration_s out or make them agree"
-            )
-    else:
-        duration_s = 3.0 if duration_s is None else duration_s
-        check_positive("simulate_rig", duration_s=duration_s)
-        n = int(round(duration_s * sample_rate_hz)) + 1
+    n = _sample_count(profile, profile_options, duration_s, dt, sample_rate_hz)
     t = np.arange(n) * dt
     duration = float(t[-1])
 
@@ -403,6 +374,102 @@ def simulate_rig(
     rng = np.random.default_rng(seed)
     unit_noise = {ch: rng.standard_normal(n) for ch in SENSOR_CHANNELS}
 
+    p, thw0, z0, delay_channel, delay_buffer = _step_params(
+        params, noise, eff, h, dt, duration, theta0_deg, resolved if closed_loop else None
+    )
+    static = _Static(
+        n_sub=n_sub,
+        closed_loop=closed_loop,
+        backlash=Backlash.id in eff,
+        wedge_load=WedgeLoadTorque.id in eff,
+        hysteresis=ForceHysteresis.id in eff,
+        friction_speed=FrictionSpeed.id in eff,
+        fade=FrictionFade.id in eff,
+        current_limit=CurrentLimit.id in eff,
+        stiction=Stiction.id in eff,
+        coast=params.disc_mode == "coast",
+        delay_channel=delay_channel,
+        delay_buffer=delay_buffer,
+    )
+    xs = _inputs(closed_loop, signal, unit_noise["theta_deg"], dt)
+    y0 = np.array([0.0, 0.0, theta0_deg / DEG, z0, 0.0, params.disc_speed_rad_s])
+    outs = _integrate(static, p, y0, thw0, xs)
+    clean, measured = _readings(outs, eff, noise, unit_noise, delay_channel)
+
+    sidecar: dict[str, Any] = {
+        "r_eff_m": params.r_eff_m,
+        "sample_rate_hz": float(sample_rate_hz),
+        "disc_mode": params.disc_mode,
+        "hardware": "synthetic EWB rig (ewb_ident.rig)",
+        "description": f"synthetic trace, {profile} profile, seed {seed}",
+    }
+    if params.disc_mode == "coast":
+        sidecar["disc_inertia_kg_m2"] = params.disc_inertia_kg_m2
+    trace = Trace(name=name, time_s=t.copy(), channels=measured, sidecar=dict(sidecar))
+
+    truth: dict[str, Any] = {
+        "generator": "ewb_ident.rig",
+        "name": name,
+        "params": dataclasses.asdict(params),
+        "effects": {k: e.to_dict() for k, e in eff.items()},
+        "noise": dataclasses.asdict(noise),
+        "profile": resolved,
+        "seed": int(seed),
+        "sample_rate_hz": float(sample_rate_hz),
+        "duration_s": duration,
+        "n_samples": int(n),
+        "theta0_deg": float(theta0_deg),
+        "fine_step_s": h,
+        "n_substeps": n_sub,
+    }
+    if not return_clean:
+        return trace, truth
+    states = _states(outs, signal if closed_loop else None)
+    clean_trace = Trace(name=name, time_s=t.copy(), channels=clean, sidecar=dict(sidecar))
+    return trace, truth, CleanRun(trace=clean_trace, states=states)
+
+
+def _check_request(params, noise, sample_rate_hz, theta0_deg, fine_step_s, seed) -> None:
+    if not isinstance(params, RigParams):
+        raise RigError(f"params must be a RigParams, got {type(params).__name__}")
+    if not isinstance(noise, SensorNoise):
+        raise RigError(f"noise must be a SensorNoise, got {type(noise).__name__}")
+    check_finite("simulate_rig", sample_rate_hz=sample_rate_hz, theta0_deg=theta0_deg)
+    if not 100.0 <= sample_rate_hz <= 1000.0:
+        raise RigError(f"sample_rate_hz must be within 100 to 1000 Hz, got {sample_rate_hz!r}")
+    check_positive("simulate_rig", fine_step_s=fine_step_s)
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise RigError(f"seed must be a non-negative integer, got {seed!r}")
+
+
+def _sample_count(profile, profile_options, duration_s, dt, sample_rate_hz) -> int:
+    """Samples of the trace: those of a given voltage, or the duration's (3 s default)."""
+    if profile == "voltage":
+        volts_in = profile_options.get("voltage_V")
+        if volts_in is None:
+            raise RigError("profile 'voltage' needs voltage_V=array (one value per sample, V)")
+        volts_in = np.asarray(volts_in, dtype=np.float64)
+        if volts_in.ndim != 1 or volts_in.size < 2 or not np.all(np.isfinite(volts_in)):
+            raise RigError(
+                "voltage_V must be a 1-D array of at least 2 finite values, got shape "
+                f"{volts_in.shape}"
+            )
+        n = volts_in.size
+        if duration_s is not None and abs((n - 1) * dt - duration_s) > 0.5 * dt:
+            raise RigError(
+                f"voltage_V has {n} samples = {(n - 1) * dt:.6g} s at {sample_rate_hz} Hz, "
+                f"but duration_s={duration_s!r}; leave duration_s out or make them agree"
+            )
+    else:
+        duration_s = 3.0 if duration_s is None else duration_s
+        check_positive("simulate_rig", duration_s=duration_s)
+        n = int(round(duration_s * sample_rate_hz)) + 1
+    return n
+
+
+def _step_params(params, noise, eff, h, dt, duration, theta0_deg, controller):
+    """The compiled simulator's parameters (a flat dict of numbers), the wedge's start
+    angle and hysteresis state, and the delayed channel with its buffer length."""
     p: dict[str, float] = {
         key: float(getattr(params, key))
         for key in ("R", "L", "kb", "kT", "M", "v", "p2", "p1", "p0", "F_rt", "a", "c", "b", "mu")
@@ -452,7 +519,8 @@ def simulate_rig(
     if Stiction.id in eff:
         e = eff[Stiction.id]
         p.update(tau_c=e.tau_c_Nm, tau_s=e.tau_s_Nm, band=e.band_rad_s)
-    if closed_loop:
+    if controller is not None:
+        resolved = controller
         p.update(
             kp=resolved["kp_V_per_deg"],
             ki=resolved["ki_V_per_deg_s"],
@@ -462,34 +530,27 @@ def simulate_rig(
             v_max=resolved["v_max_V"],
         )
 
-    static = _Static(
-        n_sub=n_sub,
-        closed_loop=closed_loop,
-        backlash=Backlash.id in eff,
-        wedge_load=WedgeLoadTorque.id in eff,
-        hysteresis=ForceHysteresis.id in eff,
-        friction_speed=FrictionSpeed.id in eff,
-        fade=FrictionFade.id in eff,
-        current_limit=CurrentLimit.id in eff,
-        stiction=Stiction.id in eff,
-        coast=params.disc_mode == "coast",
-        delay_channel=delay_channel,
-        delay_buffer=delay_buffer,
-    )
+    return p, thw0, z0, delay_channel, delay_buffer
+
+
+def _inputs(closed_loop, signal, noise_theta, dt) -> dict[str, np.ndarray]:
+    """Per-sample inputs: the voltage (open loop), or the reference with its rate and
+    acceleration for the feed-forward (closed loop); the angle sensor's unit noise."""
     if closed_loop:
         # Feedforward from the reference's mean rate and acceleration over each interval.
         ref = signal
         rate = np.diff(ref, append=ref[-1]) / dt
-        xs = {
-            "noise_theta": unit_noise["theta_deg"],
+        return {
+            "noise_theta": noise_theta,
             "ref": ref,
             "ref_rate": rate,
             "ref_acc": np.diff(rate, prepend=0.0) / dt,
         }
-    else:
-        xs = {"noise_theta": unit_noise["theta_deg"], "volts": signal}
+    return {"noise_theta": noise_theta, "volts": signal}
 
-    y0 = np.array([0.0, 0.0, theta0_deg / DEG, z0, 0.0, params.disc_speed_rad_s])
+
+def _integrate(static, p, y0, thw0, xs) -> dict[str, np.ndarray]:
+    """Run the compiled simulator (float64) and return its outputs as NumPy arrays."""
     with jax.enable_x64(True):
         fn = _compiled(static)
         jp = {
@@ -502,8 +563,12 @@ def simulate_rig(
             jnp.asarray(thw0, jnp.float64),
             {k: jnp.asarray(val, jnp.float64) for k, val in xs.items()},
         )
-        outs = {k: np.asarray(val, dtype=np.float64) for k, val in outs.items()}
+    return {k: np.asarray(val, dtype=np.float64) for k, val in outs.items()}
 
+
+def _readings(outs, eff, noise, unit_noise, delay_channel):
+    """The sensor readings: clean (sensor effects included) and measured (noise and
+    quantisation added; the angle as the controller saw it)."""
     # Sensor readings without noise (sensor effects included).
     clean = {
         "voltage_V": outs["voltage_V"],
@@ -529,34 +594,11 @@ def simulate_rig(
         q = noise.quantum(ch)
         measured[ch] = q * np.round(value / q) if q > 0 else value
 
-    sidecar: dict[str, Any] = {
-        "r_eff_m": params.r_eff_m,
-        "sample_rate_hz": float(sample_rate_hz),
-        "disc_mode": params.disc_mode,
-        "hardware": "synthetic EWB rig (ewb_ident.rig)",
-        "description": f"synthetic trace, {profile} profile, seed {seed}",
-    }
-    if params.disc_mode == "coast":
-        sidecar["disc_inertia_kg_m2"] = params.disc_inertia_kg_m2
-    trace = Trace(name=name, time_s=t.copy(), channels=measured, sidecar=dict(sidecar))
+    return clean, measured
 
-    truth: dict[str, Any] = {
-        "generator": "ewb_ident.rig",
-        "name": name,
-        "params": dataclasses.asdict(params),
-        "effects": {k: e.to_dict() for k, e in eff.items()},
-        "noise": dataclasses.asdict(noise),
-        "profile": resolved,
-        "seed": int(seed),
-        "sample_rate_hz": float(sample_rate_hz),
-        "duration_s": duration,
-        "n_samples": int(n),
-        "theta0_deg": float(theta0_deg),
-        "fine_step_s": h,
-        "n_substeps": n_sub,
-    }
-    if not return_clean:
-        return trace, truth
+
+def _states(outs, reference) -> dict[str, np.ndarray]:
+    """The rig's internal states at the sample times (for :class:`CleanRun`)."""
     states = {
         k: outs[k]
         for k in (
@@ -572,7 +614,6 @@ def simulate_rig(
             "pad_temperature_rise_K",
         )
     }
-    if closed_loop:
-        states["theta_ref_deg"] = signal.copy()
-    clean_trace = Trace(name=name, time_s=t.copy(), channels=clean, sidecar=dict(sidecar))
-    return trace, truth, CleanRun(trace=clean_trace, states=states)
+    if reference is not None:
+        states["theta_ref_deg"] = reference.copy()
+    return states
