@@ -162,17 +162,41 @@ def build_report(
         PNG bytes by file name.
     """
     figures: dict[str, bytes] = {}
-    parts: list[str] = []
     names = ", ".join(t.name for t in traces)
     title = title or f"EWB validation report: {names}"
-    parts.append(f"<h1>{_e(title)}</h1>")
     status = "converged" if fit.converged else f"did NOT converge: {fit.message}"
-    parts.append(
-        f'<p class="small">Least squares, stage <b>{_e(fit.stage)}</b> ({status}); '
-        f"{len(traces)} trace(s).</p>"
-    )
     ddoc = diagnosis.to_json() if diagnosis is not None else None
-    parts.append(_summary(fit, posterior, ddoc, corrected_posterior))
+    post = posterior.to_summary_json() if posterior is not None else None
+    parts = [
+        f"<h1>{_e(title)}</h1>",
+        f'<p class="small">Least squares, stage <b>{_e(fit.stage)}</b> ({status}); '
+        f"{len(traces)} trace(s).</p>",
+        _summary(fit, posterior, ddoc, corrected_posterior),
+        _banner(ddoc),
+        _data_section(traces, figures),
+        _parameter_section(fit, traces, post),
+    ]
+    if ddoc is not None and ddoc.get("verdict") == "found":
+        parts.append(_corrected_section(ddoc, post, corrected_posterior, corrected_note))
+    parts.append(_fit_section(fit, traces, posterior, figures))
+    parts.append("<h2>4. The clamping-force curve</h2>")
+    figures["bell.png"] = figure_bell(fit.params[0], traces)
+    parts.append(_img("bell.png", figures["bell.png"], "bell curve with regions"))
+    if post:
+        parts.append(_posterior_section(post, posterior, figures))
+    if diagnosis is not None:
+        parts.append(_diagnosis_section(ddoc, diagnosis, figures))
+    parts.append(_provenance(traces, command))
+    page = (
+        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>{_e(title)}</title>"
+        f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
+    )
+    return page, figures
+
+
+def _banner(ddoc: Mapping[str, Any] | None) -> str:
+    """A warning at the top when the diagnosis rejects the baseline model."""
+    parts: list[str] = []
     if ddoc is not None and ddoc.get("verdict") == "found":
         found = ", ".join(f["effect"] for f in ddoc["findings"] if f.get("catalog", True))
         parts.append(
@@ -188,7 +212,12 @@ def build_report(
             "misses something in this recording.</div>"
         )
 
-    # Data overview.
+    return "".join(parts)
+
+
+def _data_section(traces: Sequence[Trace], figures: dict[str, bytes]) -> str:
+    """Section 1: each trace's rate, length, pad radius and channels, and an overview."""
+    parts: list[str] = []
     parts.append("<h2>1. Data</h2>")
     rows = []
     for k, t in enumerate(traces):
@@ -204,9 +233,13 @@ def build_report(
         _table(["trace", "rate (Hz)", "length (s)", "r_eff (m)", "channels"], rows),
     )
 
-    # Parameters.
+    return "".join(parts)
+
+
+def _parameter_section(fit: FitResult, traces: Sequence[Trace], post) -> str:
+    """Section 2: least-squares values, posterior intervals and the seed's Table 2."""
+    parts: list[str] = []
     parts.append("<h2>2. Parameters</h2>")
-    post = posterior.to_summary_json() if posterior is not None else None
     seed = SEED.as_dict()
     head = ["parameter", "unit", "least squares", "std. error"]
     if post:
@@ -250,10 +283,13 @@ def build_report(
     )
     for w in fit.warnings:
         parts.append(f'<div class="warn">{_e(w)}</div>')
-    if ddoc is not None and ddoc.get("verdict") == "found":
-        parts.append(_corrected_section(ddoc, post, corrected_posterior, corrected_note))
 
-    # Fit quality.
+    return "".join(parts)
+
+
+def _fit_section(fit: FitResult, traces: Sequence[Trace], posterior, figures) -> str:
+    """Section 3: errors beside the seed's, measured against simulated, residual by phase."""
+    parts: list[str] = []
     parts.append("<h2>3. Measured against simulated</h2>")
     rows = []
     for ch, m in fit.metrics.items():
@@ -281,7 +317,6 @@ def build_report(
             _predictive_bands(posterior, t),
         )
         parts.append(_img(key, figures[key], f"measured against simulated, {t.name}"))
-        cols = ("noise", *PHASE_COLOURS)
         rows = [
             [_e(CHANNEL_LABELS.get(r["channel"], r["channel"]))]
             + [
@@ -293,22 +328,7 @@ def build_report(
         parts.append(f"<p>RMS residual by phase, {_e(t.name)}, beside the sensor noise:</p>")
         parts.append(_table(["channel", "sensor noise", *PHASE_COLOURS], rows))
 
-    # Bell curve.
-    parts.append("<h2>4. The clamping-force curve</h2>")
-    figures["bell.png"] = figure_bell(fit.params[0], traces)
-    parts.append(_img("bell.png", figures["bell.png"], "bell curve with regions"))
-
-    if post:
-        parts.append(_posterior_section(post, posterior, figures))
-    if diagnosis is not None:
-        parts.append(_diagnosis_section(ddoc, diagnosis, figures))
-    parts.append(_provenance(traces, command))
-
-    page = (
-        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>{_e(title)}</title>"
-        f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
-    )
-    return page, figures
+    return "".join(parts)
 
 
 def _predictive_bands(posterior: Any, trace: Trace) -> dict[str, tuple[np.ndarray, np.ndarray]]:
