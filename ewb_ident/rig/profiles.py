@@ -87,123 +87,145 @@ def drive_signal(
     """Voltage (open loop) or reference angle (closed loop), and the resolved settings."""
     duration = float(t[-1])
     if profile == "steps":
-        o = _take(
-            options,
-            {
-                "v_apply_V": 4.0,
-                "t_start_s": 0.1,
-                "t_apply_s": 0.25,
-                "t_hold_s": 1.5,
-                "t_release_s": 0.25,
-            },
-            profile,
-        )
-        check_finite(f"profile {profile!r}", v_apply_V=o["v_apply_V"])
-        for key in ("t_start_s", "t_apply_s", "t_hold_s", "t_release_s"):
-            check_nonnegative(f"profile {profile!r}", **{key: o[key]})
-        t1 = o["t_start_s"] + o["t_apply_s"]
-        t2 = t1 + o["t_hold_s"]
-        t3 = t2 + o["t_release_s"]
-        _check_fits(profile, t3, duration)
-        # A sample's voltage holds over [t_k, t_k+1): switch on the sample grid.
-        volts = np.zeros_like(t)
-        volts[(t >= o["t_start_s"] - 1e-12) & (t < t1 - 1e-12)] = o["v_apply_V"]
-        volts[(t >= t2 - 1e-12) & (t < t3 - 1e-12)] = -o["v_apply_V"]
-        return volts, {"kind": profile, **o}
-
+        return _steps(t, options, duration)
     if profile in ("position", "staircase"):
         if profile == "position":
-            o = _take(
-                options,
-                {
-                    "target_deg": None,
-                    "t_start_s": 0.1,
-                    "ramp_s": 0.5,
-                    "hold_s": 1.2,
-                    **CONTROLLER_DEFAULTS,
-                },
-                profile,
-            )
-            if o["target_deg"] is None:
-                o["target_deg"] = theta_for_gap(params, params.c - 0.3 * params.a)
-            check_finite(f"profile {profile!r}", target_deg=o["target_deg"])
-            check_positive(f"profile {profile!r}", ramp_s=o["ramp_s"])
-            check_nonnegative(f"profile {profile!r}", t_start_s=o["t_start_s"], hold_s=o["hold_s"])
-            t1 = o["t_start_s"] + o["ramp_s"]
-            t2 = t1 + o["hold_s"]
-            t3 = t2 + o["ramp_s"]
-            _check_fits(profile, t3, duration)
-            moves = [(o["t_start_s"], t1, o["target_deg"]), (t2, t3, theta0_deg)]
+            o, moves = _position_moves(params, theta0_deg, options, duration)
         else:
-            o = _take(
-                options,
-                {
-                    "levels_deg": None,
-                    "t_start_s": 0.1,
-                    "dwell_s": None,
-                    "peak_rate_deg_s": 1500.0,
-                    "min_ramp_s": 0.05,
-                    **CONTROLLER_DEFAULTS,
-                },
-                profile,
-            )
-            if o["levels_deg"] is None:
-                o["levels_deg"] = [
-                    theta_for_gap(params, params.c + k * params.a) for k in (-1.6, -1.2, -0.9, -0.6)
-                ]
-            levels = [float(x) for x in o["levels_deg"]]
-            if len(levels) < 1 or not all(math.isfinite(x) for x in levels):
-                raise RigError(f"profile {profile!r}: levels_deg must be finite, got {levels}")
-            if any(b <= a for a, b in zip(levels, levels[1:], strict=False)):
-                raise RigError(f"profile {profile!r}: levels_deg must increase, got {levels}")
-            o["levels_deg"] = levels
-            check_positive(
-                f"profile {profile!r}",
-                peak_rate_deg_s=o["peak_rate_deg_s"],
-                min_ramp_s=o["min_ramp_s"],
-            )
-            targets = levels + levels[-2::-1] + [theta0_deg]
-            starts = [theta0_deg] + targets[:-1]
-            ramps = [
-                max(o["min_ramp_s"], 1.875 * abs(b - a) / o["peak_rate_deg_s"])
-                for a, b in zip(starts, targets, strict=True)
-            ]
-            tail = 0.1
-            if o["dwell_s"] is None:
-                free = duration - o["t_start_s"] - sum(ramps) - tail
-                o["dwell_s"] = free / len(targets)
-                if o["dwell_s"] < 0.02:
-                    raise RigError(
-                        f"profile {profile!r}: {len(targets)} moves do not fit in "
-                        f"{duration:.4g} s; make duration_s longer or give fewer levels_deg"
-                    )
-            check_nonnegative(f"profile {profile!r}", dwell_s=o["dwell_s"])
-            moves = []
-            t0 = o["t_start_s"]
-            for ramp, target in zip(ramps, targets, strict=True):
-                moves.append((t0, t0 + ramp, target))
-                t0 += ramp + o["dwell_s"]
-            _check_fits(profile, moves[-1][1], duration)
-        check_positive(f"profile {profile!r}", v_max_V=o["v_max_V"])
-        check_nonnegative(
-            f"profile {profile!r}",
-            kp_V_per_deg=o["kp_V_per_deg"],
-            ki_V_per_deg_s=o["ki_V_per_deg_s"],
-            kd_V_s_per_deg=o["kd_V_s_per_deg"],
-        )
-        check_finite(
-            f"profile {profile!r}",
-            kff_V_s_per_deg=o["kff_V_s_per_deg"],
-            kaff_V_s2_per_deg=o["kaff_V_s2_per_deg"],
-        )
+            o, moves = _staircase_moves(params, theta0_deg, options, duration)
+        _check_controller(profile, o)
         return _ramps(t, theta0_deg, moves), {"kind": profile, **o}
-
     if profile == "voltage":
         o = _take(options, {"voltage_V": None}, profile)
         volts = np.asarray(o["voltage_V"], dtype=np.float64)
         return volts, {"kind": profile, "voltage_V": volts.tolist()}
-
     raise RigError(
         f"unknown profile {profile!r}; use 'steps', 'position', 'staircase' or 'voltage' "
         "(with voltage_V=array)"
+    )
+
+
+def _steps(t: np.ndarray, options: dict[str, Any], duration: float):
+    """Open-loop voltage steps: apply, hold at zero, release (the seed's experiment)."""
+    profile = "steps"
+    o = _take(
+        options,
+        {
+            "v_apply_V": 4.0,
+            "t_start_s": 0.1,
+            "t_apply_s": 0.25,
+            "t_hold_s": 1.5,
+            "t_release_s": 0.25,
+        },
+        profile,
+    )
+    check_finite(f"profile {profile!r}", v_apply_V=o["v_apply_V"])
+    for key in ("t_start_s", "t_apply_s", "t_hold_s", "t_release_s"):
+        check_nonnegative(f"profile {profile!r}", **{key: o[key]})
+    t1 = o["t_start_s"] + o["t_apply_s"]
+    t2 = t1 + o["t_hold_s"]
+    t3 = t2 + o["t_release_s"]
+    _check_fits(profile, t3, duration)
+    # A sample's voltage holds over [t_k, t_k+1): switch on the sample grid.
+    volts = np.zeros_like(t)
+    volts[(t >= o["t_start_s"] - 1e-12) & (t < t1 - 1e-12)] = o["v_apply_V"]
+    volts[(t >= t2 - 1e-12) & (t < t3 - 1e-12)] = -o["v_apply_V"]
+    return volts, {"kind": profile, **o}
+
+
+def _position_moves(params: RigParams, theta0_deg: float, options: dict[str, Any], duration):
+    """Apply, hold and release to a target angle (default: the piston 0.3 a short of c)."""
+    profile = "position"
+    o = _take(
+        options,
+        {
+            "target_deg": None,
+            "t_start_s": 0.1,
+            "ramp_s": 0.5,
+            "hold_s": 1.2,
+            **CONTROLLER_DEFAULTS,
+        },
+        profile,
+    )
+    if o["target_deg"] is None:
+        o["target_deg"] = theta_for_gap(params, params.c - 0.3 * params.a)
+    check_finite(f"profile {profile!r}", target_deg=o["target_deg"])
+    check_positive(f"profile {profile!r}", ramp_s=o["ramp_s"])
+    check_nonnegative(f"profile {profile!r}", t_start_s=o["t_start_s"], hold_s=o["hold_s"])
+    t1 = o["t_start_s"] + o["ramp_s"]
+    t2 = t1 + o["hold_s"]
+    t3 = t2 + o["ramp_s"]
+    _check_fits(profile, t3, duration)
+    moves = [(o["t_start_s"], t1, o["target_deg"]), (t2, t3, theta0_deg)]
+    return o, moves
+
+
+def _staircase_moves(params: RigParams, theta0_deg: float, options: dict[str, Any], duration):
+    """Up a staircase of angles (default: four force levels) and back down."""
+    profile = "staircase"
+    o = _take(
+        options,
+        {
+            "levels_deg": None,
+            "t_start_s": 0.1,
+            "dwell_s": None,
+            "peak_rate_deg_s": 1500.0,
+            "min_ramp_s": 0.05,
+            **CONTROLLER_DEFAULTS,
+        },
+        profile,
+    )
+    if o["levels_deg"] is None:
+        o["levels_deg"] = [
+            theta_for_gap(params, params.c + k * params.a) for k in (-1.6, -1.2, -0.9, -0.6)
+        ]
+    levels = [float(x) for x in o["levels_deg"]]
+    if len(levels) < 1 or not all(math.isfinite(x) for x in levels):
+        raise RigError(f"profile {profile!r}: levels_deg must be finite, got {levels}")
+    if any(b <= a for a, b in zip(levels, levels[1:], strict=False)):
+        raise RigError(f"profile {profile!r}: levels_deg must increase, got {levels}")
+    o["levels_deg"] = levels
+    check_positive(
+        f"profile {profile!r}",
+        peak_rate_deg_s=o["peak_rate_deg_s"],
+        min_ramp_s=o["min_ramp_s"],
+    )
+    targets = levels + levels[-2::-1] + [theta0_deg]
+    starts = [theta0_deg] + targets[:-1]
+    ramps = [
+        max(o["min_ramp_s"], 1.875 * abs(b - a) / o["peak_rate_deg_s"])
+        for a, b in zip(starts, targets, strict=True)
+    ]
+    tail = 0.1
+    if o["dwell_s"] is None:
+        free = duration - o["t_start_s"] - sum(ramps) - tail
+        o["dwell_s"] = free / len(targets)
+        if o["dwell_s"] < 0.02:
+            raise RigError(
+                f"profile {profile!r}: {len(targets)} moves do not fit in "
+                f"{duration:.4g} s; make duration_s longer or give fewer levels_deg"
+            )
+    check_nonnegative(f"profile {profile!r}", dwell_s=o["dwell_s"])
+    moves = []
+    t0 = o["t_start_s"]
+    for ramp, target in zip(ramps, targets, strict=True):
+        moves.append((t0, t0 + ramp, target))
+        t0 += ramp + o["dwell_s"]
+    _check_fits(profile, moves[-1][1], duration)
+    return o, moves
+
+
+def _check_controller(profile: str, o: dict[str, Any]) -> None:
+    """The position controller's gains and voltage limit."""
+    check_positive(f"profile {profile!r}", v_max_V=o["v_max_V"])
+    check_nonnegative(
+        f"profile {profile!r}",
+        kp_V_per_deg=o["kp_V_per_deg"],
+        ki_V_per_deg_s=o["ki_V_per_deg_s"],
+        kd_V_s_per_deg=o["kd_V_s_per_deg"],
+    )
+    check_finite(
+        f"profile {profile!r}",
+        kff_V_s_per_deg=o["kff_V_s_per_deg"],
+        kaff_V_s2_per_deg=o["kaff_V_s2_per_deg"],
     )
