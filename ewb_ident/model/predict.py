@@ -202,68 +202,92 @@ def predict(
     stage = stages
     meas = d["meas"]
     ctx = _context(d)
-    sensors = [m for m in mechanisms if m.uses("sensor")]
-
-    def read(ch, y):
-        for m in sensors:
-            y = m.read(ch, y, ctx)
-        return y
-
-    def unread(ch, y):
-        for m in reversed(sensors):
-            y = m.unread(ch, y, ctx)
-        return y
-
+    sensors = _Sensors(tuple(m for m in mechanisms if m.uses("sensor")), ctx)
     out = {}
     if stage in ("motor", "chain"):
         s = motor_states(p, meas["voltage_V"], d["dt"], theta0_deg, mechanisms, n_sub, method)
         theta = s[:, 2] * DEG_PER_RAD
-        out["theta_deg"] = read("theta_deg", theta)
-        out["current_A"] = read("current_A", s[:, 0])
+        out["theta_deg"] = sensors.read("theta_deg", theta)
+        out["current_A"] = sensors.read("current_A", s[:, 0])
         if stage == "motor":
             return out
     elif stage == "gap":
-        theta = unread("theta_deg", meas["theta_deg"])
+        theta = sensors.unread("theta_deg", meas["theta_deg"])
 
     if stage in ("gap", "chain"):
-        wedge = [m for m in mechanisms if m.uses("wedge_angle")]
-        theta_w = theta
-        if wedge and stage == "gap" and "theta_deg" in d.get("drive", {}):
-            # A measured angle drives the play: use it averaged where it stands still.
-            theta_w = unread("theta_deg", d["drive"]["theta_deg"])
-        for m in wedge:
-            theta_w = m.wedge_angle(theta_w, ctx)
-        x = gap(theta_w, p.p2, p.p1, p.p0)
-        x = _correct("gap", x, mechanisms, ctx | {"theta": theta})
-        out["x_m"] = read("x_m", x)
+        x = _gap(stage, theta, p, mechanisms, d, ctx, sensors)
+        out["x_m"] = sensors.read("x_m", x)
         if stage == "gap":
             return out
         x_drive = x
     elif stage == "force":
-        x = unread("x_m", meas["x_m"])
+        x = sensors.unread("x_m", meas["x_m"])
         x_drive = x
 
-    force_mechs = [m for m in mechanisms if m.uses("clamp_force")]
     if stage in ("force", "chain"):
-        if stage == "force" and force_mechs:
-            drive = d.get("drive", {})
-            if "x_model" in drive:  # a noise-free motion history (from the voltage)
-                x_drive = drive["x_model"]
-            else:
-                if "x_m" in drive:
-                    x_drive = unread("x_m", drive["x_m"])
-                x_drive = play(x_drive, d["x_play"])
-        F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
-        f_bell = F
-        for m in force_mechs:
-            F = m.clamp_force(x_drive, F, ctx)
-        F = _correct("force", F, mechanisms, ctx | {"x": x, "x_drive": x_drive, "f_bell": f_bell})
-        out["force_N"] = read("force_N", F)
+        F = _force(stage, x, x_drive, p, mechanisms, d, ctx, sensors)
+        out["force_N"] = sensors.read("force_N", F)
         if stage == "force":
             return out
     else:  # torque stage
-        F = unread("force_N", meas["force_N"])
+        F = sensors.unread("force_N", meas["force_N"])
+    out["torque_Nm"] = sensors.read("torque_Nm", _torque(F, p, mechanisms, d, ctx))
+    return out
 
+
+class _Sensors:
+    """The sensor mechanisms: ``read`` what a sensor shows of a true value, ``unread``
+    the true value behind a measured one (in reverse order)."""
+
+    def __init__(self, mechanisms: tuple, ctx: dict[str, Any]):
+        self.mechanisms, self.ctx = mechanisms, ctx
+
+    def read(self, ch: str, y: jnp.ndarray) -> jnp.ndarray:
+        for m in self.mechanisms:
+            y = m.read(ch, y, self.ctx)
+        return y
+
+    def unread(self, ch: str, y: jnp.ndarray) -> jnp.ndarray:
+        for m in reversed(self.mechanisms):
+            y = m.unread(ch, y, self.ctx)
+        return y
+
+
+def _gap(stage, theta, p, mechanisms, d, ctx, sensors) -> jnp.ndarray:
+    """Piston displacement from the pinion angle, through the wedge mechanisms (play)."""
+    wedge = [m for m in mechanisms if m.uses("wedge_angle")]
+    theta_w = theta
+    if wedge and stage == "gap" and "theta_deg" in d.get("drive", {}):
+        # A measured angle drives the play: use it averaged where it stands still.
+        theta_w = sensors.unread("theta_deg", d["drive"]["theta_deg"])
+    for m in wedge:
+        theta_w = m.wedge_angle(theta_w, ctx)
+    x = gap(theta_w, p.p2, p.p1, p.p0)
+    return _correct("gap", x, mechanisms, ctx | {"theta": theta})
+
+
+def _force(stage, x, x_drive, p, mechanisms, d, ctx, sensors) -> jnp.ndarray:
+    """Clamping force from the displacement, through the force mechanisms (hysteresis
+    driven by the motion history ``x_drive``)."""
+    force_mechs = [m for m in mechanisms if m.uses("clamp_force")]
+    if stage == "force" and force_mechs:
+        drive = d.get("drive", {})
+        if "x_model" in drive:  # a noise-free motion history (from the voltage)
+            x_drive = drive["x_model"]
+        else:
+            if "x_m" in drive:
+                x_drive = sensors.unread("x_m", drive["x_m"])
+            x_drive = play(x_drive, d["x_play"])
+    F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
+    f_bell = F
+    for m in force_mechs:
+        F = m.clamp_force(x_drive, F, ctx)
+    return _correct("force", F, mechanisms, ctx | {"x": x, "x_drive": x_drive, "f_bell": f_bell})
+
+
+def _torque(F, p, mechanisms, d, ctx) -> jnp.ndarray:
+    """Brake torque from the clamping force, through the friction-coefficient mechanisms
+    (those driven by dissipated energy by two fixed-point passes)."""
     mu_mechs = [m for m in mechanisms if m.uses("friction_coefficient")]
     factor = 1.0
     for m in mu_mechs:
@@ -282,9 +306,7 @@ def predict(
             for m in energy_mechs:
                 faded = faded * m.mu_factor(ctx)
         torque = faded
-    torque = _correct("torque", torque, mechanisms, ctx | {"force": F, "torque0": torque})
-    out["torque_Nm"] = read("torque_Nm", torque)
-    return out
+    return _correct("torque", torque, mechanisms, ctx | {"force": F, "torque0": torque})
 
 
 def _correct(stage: str, y, mechanisms, signals) -> jnp.ndarray:
