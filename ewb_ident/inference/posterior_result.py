@@ -226,9 +226,7 @@ def assemble(
     """The result record from the chains of ``run`` (:func:`~ewb_ident.inference.chains.
     run_chains`): intervals, diagnostics, identifiability, predictive bands."""
     samplers, chains, diag, seq = run.samplers, run.chains, run.diag, run.seq
-    hdi_prob, min_ess, max_draws, seed = (
-        settings.hdi_prob, settings.min_ess, settings.max_draws, settings.seed
-    )
+    hdi_prob = settings.hdi_prob
     E, (N, W, D), S = len(chains), chains[0].shape, len(segs)
     burn, thin = diag["burn"], diag["thin"]
     kept = [c[burn::thin] for c in chains]
@@ -248,80 +246,21 @@ def assemble(
     for j, seg in enumerate(segs):
         draws[seg.name] = noise[:, :, j]
 
-    # Statistics: ESS and R-hat of model parameters from the whole chain after burn-in;
-    # of the noise levels from their thinned draws.
-    tau = {n: diag["tau"][:, j] for j, n in enumerate(names)}
-    stats: dict[str, dict[str, Any]] = {}
-    for j, n in enumerate(names):
-        stats[n] = entry(
-            draws[n], hdi_prob, ess=float(diag["ess"][j]), r_hat=float(diag["rhat"][j]),
-            unit=info_of(n).unit, source="posterior",
-            tau_steps=float(np.max(tau[n])),
-        )  # fmt: skip
-    nz = noise.reshape(E, T, W, S)
-    with np.errstate(all="ignore"):
-        if T > 1:
-            tau_noise = np.stack([autocorr_time(nz[e]) for e in range(E)]) * thin
-        else:
-            tau_noise = np.ones((E, S))
-    for j, seg in enumerate(segs):
-        ess = float(np.sum(W * T * thin / tau_noise[:, j]))
-        rhat = split_rhat([nz[e, :, :, j] for e in range(E)])
-        stats[seg.name] = entry(
-            draws[seg.name], hdi_prob, ess=ess, r_hat=rhat, unit=_unit(seg.channel),
-            source="posterior",
-        )  # fmt: skip
-
-    # Priors: their spread, to say where the traces add nothing.
+    stats = _parameter_stats(names, draws, diag, hdi_prob)
+    stats |= _noise_stats(segs, draws, noise.reshape(E, T, W, S), thin, hdi_prob)
     prng = np.random.default_rng(seq[2 * E + 1])
-    prior_sd: dict[str, float | None] = {}
-    for b in dict.fromkeys([key(n) for n in names] + list(CONTRACT_PARAMS)):
-        x = priors[b].sample(prng, 20000)
-        prior_sd[b] = None if x is None else float(np.std(x))
-    for n in names:
-        psd = prior_sd[key(n)]
-        stats[n]["prior_sd"] = psd
-        stats[n]["sd_ratio"] = None if not psd else finite_or_none(stats[n]["sd"] / psd)
+    prior_sd = _prior_spread(names, stats, priors, prng)
     ident = _identifiability(names, draws, stats, traces, stages, fixed)
-    for n in CONTRACT_PARAMS:
-        if n in stats:
-            continue
-        src = _unsampled_source(n, stages, traces)
-        if src == "prior" and n not in (fixed or {}):
-            x = priors[n].sample(prng, 20000)
-            stats[n] = entry(x, hdi_prob, ess=None, r_hat=None, unit=PARAMS[n].unit)
-            stats[n] |= {"source": "prior", "prior_sd": prior_sd[n], "sd_ratio": 1.0}
-        else:
-            v = float(held[n])
-            stats[n] = {"mean": v, "sd": 0.0, "hdi_low": v, "hdi_high": v, "ess": None}
-            stats[n] |= {"r_hat": None, "unit": PARAMS[n].unit, "source": "fixed"}
+    _unsampled_stats(stats, stages, traces, priors, prng, prior_sd, fixed, held, hdi_prob)
 
-    # Convergence and what to do about it.
     acc = [s.acceptance_fraction for s in samplers]
     stuck = [int(np.sum(a < STUCK * np.median(a))) for a in acc]
     converged = bool(diag["ok"] and not any(stuck))
-    warns = list(notes) + convergence_warnings(diag, names, stuck, acc, N, W, E, min_ess)
-    diagnostics = {
-        "n_ensembles": E,
-        "n_walkers": W,
-        "n_steps": N,
-        "burn": burn,
-        "thin": thin,
-        "steps_after_burn": diag["n_post"],
-        "moves": "emcee DEMove",
-        "tau": {n: [finite_or_none(float(t)) for t in tau[n]] for n in names},
-        "tau_max": finite_or_none(float(np.max(diag["tau"]))),
-        "tau_reliable": diag["reliable"],
-        "tau_rule": f"steps after burn-in >= {TAU_RELIABLE:g} tau",
-        "acceptance": [float(np.mean(a)) for a in acc],
-        "stuck_walkers": stuck,
-        "ess_min": finite_or_none(float(np.min(diag["ess"]))),
-        "ess_floor": float(min_ess),
-        "r_hat_max": finite_or_none(float(np.max(diag["rhat"]))),
-        "r_hat_threshold": RHAT_MAX,
-        "draws_kept": int(E * T * W),
-    }
-    predictive = _predictive(lp, U, s2, segs, names, draws, samplers, burn, thin, max_draws, seq)
+    warns = list(notes) + convergence_warnings(diag, names, stuck, acc, N, W, E, settings.min_ess)
+    diagnostics = _diagnostics(diag, names, acc, stuck, E, N, W, T, settings.min_ess)
+    predictive = _predictive(
+        lp, U, s2, segs, names, draws, samplers, burn, thin, settings.max_draws, seq
+    )
     diagnostics["draws_stored"] = int(predictive["lp"].size)
     return PosteriorResult(
         stages=tuple(stages),
@@ -335,25 +274,116 @@ def assemble(
         warnings=tuple(warns),
         identifiability=tuple(ident),
         diagnostics=diagnostics,
-        noise=tuple(
-            {
-                "trace": s.trace_name,
-                "trace_index": s.trace,
-                "channel": s.channel,
-                "n": s.n,
-                "model": s.model,
-                "phi": s.phi,
-                "residual_lag1_autocorrelation": s.rho1,
-                "white_noise_band": 3.0 / math.sqrt(s.n),
-            }
-            for s in segs
-        ),  # fmt: skip
+        noise=tuple(_noise_record(s) for s in segs),
         priors=dict(priors),
-        seed=int(seed),
+        seed=int(settings.seed),
         fits=tuple(fits),
         timing={},
         predictive=predictive,
     )
+
+
+def _parameter_stats(names, draws, diag, hdi_prob) -> dict[str, dict[str, Any]]:
+    """Summary of each model parameter; ESS and R-hat from the whole chain after burn-in."""
+    stats: dict[str, dict[str, Any]] = {}
+    for j, n in enumerate(names):
+        stats[n] = entry(
+            draws[n], hdi_prob, ess=float(diag["ess"][j]), r_hat=float(diag["rhat"][j]),
+            unit=info_of(n).unit, source="posterior",
+            tau_steps=float(np.max(diag["tau"][:, j])),
+        )  # fmt: skip
+    return stats
+
+
+def _noise_stats(segs, draws, nz, thin, hdi_prob) -> dict[str, dict[str, Any]]:
+    """Summary of each noise level (``nz``: ensembles, steps, walkers, segments); ESS and
+    R-hat from their thinned draws."""
+    E, T, W, S = nz.shape
+    with np.errstate(all="ignore"):
+        if T > 1:
+            tau_noise = np.stack([autocorr_time(nz[e]) for e in range(E)]) * thin
+        else:
+            tau_noise = np.ones((E, S))
+    stats: dict[str, dict[str, Any]] = {}
+    for j, seg in enumerate(segs):
+        ess = float(np.sum(W * T * thin / tau_noise[:, j]))
+        rhat = split_rhat([nz[e, :, :, j] for e in range(E)])
+        stats[seg.name] = entry(
+            draws[seg.name], hdi_prob, ess=ess, r_hat=rhat, unit=_unit(seg.channel),
+            source="posterior",
+        )  # fmt: skip
+    return stats
+
+
+def _prior_spread(names, stats, priors, prng) -> dict[str, float | None]:
+    """Each prior's standard deviation (by sampling), and each parameter's posterior sd
+    over it: where the traces add nothing, the ratio is near 1."""
+    prior_sd: dict[str, float | None] = {}
+    for b in dict.fromkeys([key(n) for n in names] + list(CONTRACT_PARAMS)):
+        x = priors[b].sample(prng, 20000)
+        prior_sd[b] = None if x is None else float(np.std(x))
+    for n in names:
+        psd = prior_sd[key(n)]
+        stats[n]["prior_sd"] = psd
+        stats[n]["sd_ratio"] = None if not psd else finite_or_none(stats[n]["sd"] / psd)
+    return prior_sd
+
+
+def _unsampled_stats(stats, stages, traces, priors, prng, prior_sd, fixed, held, hdi_prob):
+    """A line for each contract parameter that was not sampled: its prior where the
+    stages do not reach it, else its held value."""
+    for n in CONTRACT_PARAMS:
+        if n in stats:
+            continue
+        src = _unsampled_source(n, stages, traces)
+        if src == "prior" and n not in (fixed or {}):
+            x = priors[n].sample(prng, 20000)
+            stats[n] = entry(x, hdi_prob, ess=None, r_hat=None, unit=PARAMS[n].unit)
+            stats[n] |= {"source": "prior", "prior_sd": prior_sd[n], "sd_ratio": 1.0}
+        else:
+            v = float(held[n])
+            stats[n] = {"mean": v, "sd": 0.0, "hdi_low": v, "hdi_high": v, "ess": None}
+            stats[n] |= {"r_hat": None, "unit": PARAMS[n].unit, "source": "fixed"}
+
+
+def _diagnostics(diag, names, acc, stuck, E, N, W, T, min_ess) -> dict[str, Any]:
+    """The MCMC diagnostics of the contract (``diagnostics`` in ``summary.json``)."""
+    return {
+        "n_ensembles": E,
+        "n_walkers": W,
+        "n_steps": N,
+        "burn": diag["burn"],
+        "thin": diag["thin"],
+        "steps_after_burn": diag["n_post"],
+        "moves": "emcee DEMove",
+        "tau": {
+            n: [finite_or_none(float(t)) for t in diag["tau"][:, j]] for j, n in enumerate(names)
+        },
+        "tau_max": finite_or_none(float(np.max(diag["tau"]))),
+        "tau_reliable": diag["reliable"],
+        "tau_rule": f"steps after burn-in >= {TAU_RELIABLE:g} tau",
+        "acceptance": [float(np.mean(a)) for a in acc],
+        "stuck_walkers": stuck,
+        "ess_min": finite_or_none(float(np.min(diag["ess"]))),
+        "ess_floor": float(min_ess),
+        "r_hat_max": finite_or_none(float(np.max(diag["rhat"]))),
+        "r_hat_threshold": RHAT_MAX,
+        "draws_kept": int(E * T * W),
+    }
+
+
+def _noise_record(s) -> dict[str, Any]:
+    """One noise segment as ``summary.json`` lists it."""
+    return {
+        "trace": s.trace_name,
+        "trace_index": s.trace,
+        "channel": s.channel,
+        "n": s.n,
+        "model": s.model,
+        "phi": s.phi,
+        "residual_lag1_autocorrelation": s.rho1,
+        "white_noise_band": 3.0 / math.sqrt(s.n),
+    }
 
 
 def _unit(channel: str) -> str:
