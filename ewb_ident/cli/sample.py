@@ -95,7 +95,6 @@ def sample(
         corrected_options(traces, stage, free, per_trace, fix, integrator)
     import time
 
-    from ewb_ident.data.outputs import atomic_write, json_text
     from ewb_ident.diagnosis.corrected import fit_corrected
     from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.inference.log_posterior import SampleError
@@ -110,20 +109,7 @@ def sample(
     stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
     if isinstance(stages, tuple) and len(stages) == 1:
         stages = stages[0]
-    bar = None
-    if not no_progress and sys.stderr.isatty():
-        from rich.console import Console
-        from rich.progress import Progress
-
-        bar = Progress(console=Console(stderr=True), transient=True)
-    task = None
-
-    def progress(done: int, total: int) -> None:
-        nonlocal task
-        if task is None:
-            task = bar.add_task("sampling", total=total)
-        bar.update(task, completed=done, total=total)
-
+    bar, progress = _progress_bar(no_progress)
     t0 = time.perf_counter()
     try:
         trs = read_traces(
@@ -142,7 +128,7 @@ def sample(
             hdi_prob=hdi_prob,
             max_draws=draws,
             seed=seed,
-            progress=None if bar is None else progress,
+            progress=progress,
         )
         if mechanisms is None:
             result = run_sample(
@@ -161,6 +147,39 @@ def sample(
     finally:
         if bar is not None:
             bar.stop()
+    _write(out, result, traces)
+    typer.echo(posterior_summary(result))
+    typer.echo(
+        f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {out / 'pairs.png'} "
+        f"({time.perf_counter() - t0:.1f} s)"
+    )
+    if not result.converged:
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _progress_bar(no_progress: bool):
+    """A progress bar on a terminal's stderr (else none), and the callback that moves it."""
+    if no_progress or not sys.stderr.isatty():
+        return None, None
+    from rich.console import Console
+    from rich.progress import Progress
+
+    bar = Progress(console=Console(stderr=True), transient=True)
+    task = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal task
+        if task is None:
+            task = bar.add_task("sampling", total=total)
+        bar.update(task, completed=done, total=total)
+
+    return bar, progress
+
+
+def _write(out, result, traces) -> None:
+    """summary.json, posterior.nc and pairs.png, atomically."""
+    from ewb_ident.data.outputs import atomic_write, json_text
+
     text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
     idata, fig = result.to_inference_data(), result.pair_plot()
     out.mkdir(parents=True, exist_ok=True)
@@ -171,10 +190,3 @@ def sample(
             (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
         ]
     )
-    typer.echo(posterior_summary(result))
-    typer.echo(
-        f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {out / 'pairs.png'} "
-        f"({time.perf_counter() - t0:.1f} s)"
-    )
-    if not result.converged:
-        raise typer.Exit(EXIT_UNTRUSTWORTHY)

@@ -70,7 +70,13 @@ _I, _W, _TH, _Z, _HEAT, _WD = range(6)
 
 @functools.lru_cache(maxsize=64)
 def _compiled(st: _Static):
-    """Build and jit the simulator for one set of static settings."""
+    """Build and jit the simulator for one set of static settings.
+
+    Longer than the package's ~80-line guide on purpose: its nested functions (the
+    wedge's play, one fine step of the motor, wedge and disc, one logging interval with
+    its sensors and controller) close over ``st``, so each compiled program holds only
+    the effects present, and the rig's physics reads top to bottom in one place.
+    """
 
     def wedge(y, thw_old, p):
         """Wedge-side angle (deg) and speed (rad/s) given the play state before the step."""
