@@ -104,13 +104,11 @@ def test_bad_mechanism_settings_are_refused():
 
 
 def test_plausibility_needs_resolved_parameters_inside_bounds():
-    m = Backlash()
-    assert m.plausible({"beta_deg": 2.0, "side": 1.0}, {"beta_deg": 0.1, "side": None}) == ""
-    assert "outside the plausible range" in m.plausible(
-        {"beta_deg": 90.0, "side": 1.0}, {"beta_deg": 0.1}
-    )
-    assert "includes no effect" in m.plausible({"beta_deg": 0.15, "side": 1.0}, {"beta_deg": 0.1})
-    assert "not resolved" in m.plausible({"beta_deg": 2.0, "side": 1.0}, {"beta_deg": None})
+    why = Backlash().implausible_reason
+    assert why({"beta_deg": 2.0, "side": 1.0}, {"beta_deg": 0.1, "side": None}) == ""
+    assert "outside the plausible range" in why({"beta_deg": 90.0, "side": 1.0}, {"beta_deg": 0.1})
+    assert "includes no effect" in why({"beta_deg": 0.15, "side": 1.0}, {"beta_deg": 0.1})
+    assert "not resolved" in why({"beta_deg": 2.0, "side": 1.0}, {"beta_deg": None})
 
 
 def test_value_with_uncertainty_is_rounded_to_the_error():
@@ -247,12 +245,12 @@ def test_wedge_load_torque_of_one_form_leaves_the_other_absent_not_implausible()
     # A reaction-only trace (fresh widened case 23) drove k_w's log coordinate far below
     # its bound; that is "no friction form", and the reaction form stands on its own.
     reaction = {"k_w": 1e-63, "omega0_rad_s": 5.8e-29, "k_r": 1.9e-5}
-    assert m.plausible(reaction, {"k_w": None, "omega0_rad_s": None, "k_r": 1e-7}) == ""
+    assert m.implausible_reason(reaction, {"k_w": None, "omega0_rad_s": None, "k_r": 1e-7}) == ""
     friction = {"k_w": 3e-5, "omega0_rad_s": 0.5, "k_r": -5e-8}
-    assert m.plausible(friction, {"k_w": 1e-7, "omega0_rad_s": 0.1, "k_r": 2e-8}) == ""
-    neither = m.plausible(reaction | {"k_r": 1e-8}, {"k_w": None, "k_r": 1e-7})
+    assert m.implausible_reason(friction, {"k_w": 1e-7, "omega0_rad_s": 0.1, "k_r": 2e-8}) == ""
+    neither = m.implausible_reason(reaction | {"k_r": 1e-8}, {"k_w": None, "k_r": 1e-7})
     assert neither.startswith("neither part is resolved")
-    too_big = m.plausible(friction | {"k_r": 2e-3}, {"k_w": 1e-7, "k_r": 1e-5})
+    too_big = m.implausible_reason(friction | {"k_r": 2e-3}, {"k_w": 1e-7, "k_r": 1e-5})
     assert "outside the plausible range" in too_big
 
 

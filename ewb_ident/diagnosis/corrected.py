@@ -200,7 +200,7 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
                 f"--with {m.variant}: its stages ({', '.join(m.stages)}) cannot be fitted "
                 f"from the channels of {trace.label}"
             )
-        reason = m.applicable(ses.cols, ses.ctx)
+        reason = m.unsupported_reason(ses.cols, ses.ctx)
         if reason:
             raise DiagnoseError(f"--with {m.variant}: {reason}")
     stages = stage_order({s for m in templates for s in ses.mechanism_stages(m)})

@@ -317,7 +317,7 @@ def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
     mst = ses.mechanism_stages(tmpl)
     if not mst or not set(mst) & still:
         return None
-    if tmpl.applicable(ses.cols, ses.ctx):
+    if tmpl.unsupported_reason(ses.cols, ses.ctx):
         return None
     T = closure(mst, selected, ses)
     ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
@@ -327,7 +327,7 @@ def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
     ev = bic_evidence(f1, f0, ses.sigma_tf, own) | {"converged": float(f1.converged)}
     mech = fitted_mechanism(f1, tmpl.variant)
     se = f1.mechanism_stderr(mech)
-    reason = mech.plausible(mech.values(), se)
+    reason = mech.implausible_reason(mech.values(), se)
     if not reason and ev["delta_bic"] > -bic_threshold:
         reason = f"dBIC {ev['delta_bic']:.1f} > -{bic_threshold:g}"
     if not reason and ev["explained_fraction"] < MIN_EXPLAINED:

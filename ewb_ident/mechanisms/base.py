@@ -74,7 +74,6 @@ HOOKS: tuple[str, ...] = (
 )
 
 
-
 class AbstractMechanism(eqx.Module):
     """A differentiable augmentation of one stage of the chain (see module docstring).
 
@@ -148,7 +147,7 @@ class AbstractMechanism(eqx.Module):
             raise ValueError(f"{self.id}: unknown parameter(s) {bad}; known: {sorted(known)}")
         return dataclasses.replace(self, **dict(values))
 
-    def applicable(self, channels: tuple[str, ...], ctx: Mapping[str, Any]) -> str | None:
+    def unsupported_reason(self, channels: tuple[str, ...], ctx: Mapping[str, Any]) -> str | None:
         """``None`` when the mechanism can be fitted to a trace with these channels;
         otherwise the reason, in words."""
         missing = [c for c in self.NEEDS if c not in channels]
@@ -160,7 +159,9 @@ class AbstractMechanism(eqx.Module):
         """Starting values (SI) for a fit; several when the cost has several valleys."""
         return [{p.name: _ref(p) for p in self.param_info()}]
 
-    def plausible(self, values: Mapping[str, float], stderr: Mapping[str, float | None]) -> str:
+    def implausible_reason(
+        self, values: Mapping[str, float], stderr: Mapping[str, float | None]
+    ) -> str:
         """``""`` when the fitted parameters are physically plausible and resolved;
         otherwise the reason, in words (the finding is then not reported).
 

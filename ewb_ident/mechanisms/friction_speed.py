@@ -46,8 +46,8 @@ class FrictionSpeed(AbstractMechanism):
     def param_info(self) -> tuple[ParamInfo, ...]:
         return _INFO
 
-    def applicable(self, channels, ctx) -> str | None:
-        reason = super().applicable(channels, ctx)
+    def unsupported_reason(self, channels, ctx) -> str | None:
+        reason = super().unsupported_reason(channels, ctx)
         if reason:
             return reason
         if float(ctx.get("disc_speed_span", 0.0)) < MIN_SPEED_SPAN:

@@ -64,7 +64,7 @@ class SensorDelay(AbstractMechanism):
     def channels(self) -> tuple[str, ...]:
         return (self.channel,)
 
-    def applicable(self, channels, ctx) -> str | None:
+    def unsupported_reason(self, channels, ctx) -> str | None:
         if self.channel not in channels:
             return f"the trace has no {self.channel}"
         return None

@@ -94,7 +94,7 @@ class WedgeLoadTorque(AbstractMechanism):
         reaction = [{"k_w": 1e-7, "omega0_rad_s": 1.0, "k_r": k} for k in (-1e-5, 1e-5, 3e-5)]
         return friction + reaction
 
-    def plausible(self, values, stderr) -> str:
+    def implausible_reason(self, values, stderr) -> str:
         """Neither part too large, and at least one resolved. A part at no effect is
         absent, not implausible: a trace of one form drives the other to zero (``k_w``
         below its lower bound, where its log coordinate has run off)."""
