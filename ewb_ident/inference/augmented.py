@@ -5,7 +5,8 @@ caller (the sensor noise floor, with the input noise a teacher-forced stage prop
 so that fits of the same stages with and without a mechanism have comparable costs.
 Parameters are optimised in unconstrained O(1) coordinates: the base parameters as
 declared in :data:`ewb_ident.model.params.PARAMS`, each mechanism's as it declares them.
-The solver is Levenberg-Marquardt (:func:`levenberg_marquardt`) from the best of a few
+The solver is Levenberg-Marquardt (:func:`ewb_ident.inference.solvers.levenberg_marquardt`)
+from the best of a few
 starting points.
 
 Arrays are padded to a multiple of :data:`PAD` samples (padding weighted zero) so that
@@ -25,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.trace import Trace
+from ewb_ident.inference.solvers import Solution, Status, levenberg_marquardt
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
@@ -214,83 +216,6 @@ def jacobian(problem: AugProblem, u, data):
 
 
 @dataclass(frozen=True)
-class Solution:
-    """Result of :func:`levenberg_marquardt`."""
-
-    u: np.ndarray
-    cost: float
-    converged: bool
-    steps: int
-
-
-def levenberg_marquardt(
-    problem: AugProblem,
-    u0: np.ndarray,
-    data: Mapping[str, Any],
-    *,
-    max_steps: int = 200,
-    rtol: float = 1e-9,
-    xtol: float = 1e-9,
-) -> Solution:
-    """Minimise ``sum(problem(u, data)^2)`` by Levenberg-Marquardt.
-
-    The loop runs in NumPy around two compiled functions (residuals; residuals with
-    their forward-mode Jacobian): compiling a whole solver for every combination of
-    mechanisms costs ten times more than the solve. Marquardt's diagonal scaling;
-    Nielsen's update of the damping. Converged when the relative decrease of the cost,
-    or the step relative to ``u``, falls below the tolerances, or the gradient vanishes.
-    """
-    u = np.asarray(u0, dtype=float)
-    r, J, _ = residuals_and_jacobian(problem, jnp.asarray(u), data)
-    r, J = np.asarray(r), np.asarray(J)
-    cost = float(r @ r)
-    if not np.isfinite(cost):
-        return Solution(u, float("inf"), False, 0)
-    if not np.all(np.isfinite(J)):
-        return Solution(u, cost, False, 0)
-    A, g = J.T @ J, J.T @ r
-    lam = 1e-3 * float(np.max(np.diag(A))) if A.size else 0.0
-    nu = 2.0
-    for step in range(1, max_steps + 1):
-        if A.size == 0:
-            return Solution(u, cost, True, step)
-        D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
-        if float(np.max(np.abs(g) / np.sqrt(D))) <= 1e-10 * max(np.sqrt(cost), 1e-300):
-            return Solution(u, cost, True, step)
-        try:
-            delta = np.linalg.solve(A + lam * np.diag(D), -g)
-        except np.linalg.LinAlgError:
-            lam, nu = lam * nu, nu * 2
-            continue
-        u_new = u + delta
-        r_new = np.asarray(residuals(problem, jnp.asarray(u_new), data))
-        with np.errstate(over="ignore", invalid="ignore"):
-            cost_new = float(r_new @ r_new)
-        predicted = float(-2.0 * g @ delta - delta @ A @ delta)
-        rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
-        if np.isfinite(cost_new) and rho > 0:
-            r_j, J_j, _ = residuals_and_jacobian(problem, jnp.asarray(u_new), data)
-            J_j = np.asarray(J_j)
-            if not np.all(np.isfinite(J_j)):  # a step to where the model has no slope
-                lam, nu = lam * nu, nu * 2.0
-                continue
-            small = cost - cost_new <= rtol * cost
-            tiny = np.linalg.norm(delta) <= xtol * (np.linalg.norm(u) + xtol)
-            u, cost = u_new, cost_new
-            r, J = np.asarray(r_j), J_j
-            A, g = J.T @ J, J.T @ r
-            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-            nu = 2.0
-            if small or tiny:
-                return Solution(u, cost, True, step)
-        else:
-            lam, nu = lam * nu, nu * 2.0
-            if lam > 1e16 * max(float(np.max(D)), 1.0):
-                return Solution(u, cost, True, step)
-    return Solution(u, cost, False, max_steps)
-
-
-@dataclass(frozen=True)
 class AugFit:
     """The outcome of one fit with mechanisms (immutable).
 
@@ -439,14 +364,19 @@ def fit_mechanisms(
 
     best = None
     for i in order:
-        sol = levenberg_marquardt(problem, us[i], data, max_steps=max_steps)
+        sol = levenberg_marquardt(
+            lambda u: residuals(problem, u, data),
+            lambda u: residuals_and_jacobian(problem, u, data),
+            us[i],
+            max_steps=max_steps,
+        )
         if not np.isfinite(sol.cost):
             continue
         if best is None or sol.cost < best.cost:
             best = sol
     if best is None:  # every start failed: keep the best start point
         i = int(order[0])
-        best = Solution(us[i], float(costs[i]), False, 0)
+        best = Solution(us[i], float(costs[i]), Status.FAILED, 0)
     return _result(problem, best.u, data, best.converged, mechs)
 
 

@@ -25,7 +25,6 @@ import dataclasses
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
-import optimistix as optx
 
 from ewb_ident.data.metrics import (
     SEED_ACCEPTANCE_PCT,
@@ -43,10 +42,10 @@ from ewb_ident.inference.problem import (
     Stage,
     build_setup,
     evaluate,
-    solve_problem,
     stage_inputs,
     usable,
 )
+from ewb_ident.inference.solvers import Solution, Status, optimistix_lm
 from ewb_ident.inference.uncertainty import (
     identifiability_notes,
     parameter_uncertainty,
@@ -257,36 +256,37 @@ def fit(
         # Every solve counts, as in ``_finish``: a first solve that ran out of steps in a
         # flat valley can be followed by a re-weighted one that stops "successfully"
         # because its steps became tiny, not because it reached an optimum.
-        done = all(_is(res, optx.RESULTS.successful) for res in results)
+        done = all(s.converged for s in results)
         if done or len(setup.problem.shared) < 2:
             break
         if not (
-            hold_one(setup, sol.value, data, st, held, held_notes, "where the solver stopped")
-            or hold_flank_exponent(setup, sol.value, data, held, held_notes)
+            hold_one(setup, sol.u, data, st, held, held_notes, "where the solver stopped")
+            or hold_flank_exponent(setup, sol.u, data, held, held_notes)
         ):
             break
     if held_notes:
         setup = dataclasses.replace(setup, notes=setup.notes + tuple(held_notes))
-    return _finish(setup, sol.value, data, sigma, results, steps, max_steps)
+    return _finish(setup, sol.u, data, sigma, results, steps, max_steps)
 
 
 def _solve_twice(setup, u0, data, sigma, rtol, atol, max_steps):
     """Solve, re-estimate the noise levels from the residuals, solve again; a solve that
     ran out of steps while still descending gets one more allowance."""
     problem = setup.problem
-    sol = solve_problem(problem, u0, data, rtol, atol, max_steps)
-    results, steps = [sol.result], int(sol.stats["num_steps"])
-    r = np.asarray(evaluate(problem, sol.value, data)[0])
+    tol = dict(rtol=rtol, atol=atol, max_steps=max_steps)
+    sol = optimistix_lm(problem, u0, data, **tol)
+    results, steps = [sol], sol.steps
+    r = np.asarray(evaluate(problem, sol.u, data)[0])
     if np.all(np.isfinite(r)):
         sigma = _residual_sigma(r, setup.channels, setup.traces, sigma)
         data = setup.data(sigma)
-        sol = solve_problem(problem, sol.value, data, rtol, atol, max_steps)
-        results.append(sol.result)
-        steps += int(sol.stats["num_steps"])
-        if _is(sol.result, optx.RESULTS.nonlinear_max_steps_reached):
-            sol = solve_problem(problem, sol.value, data, rtol, atol, max_steps)
-            results[-1] = sol.result
-            steps += int(sol.stats["num_steps"])
+        sol = optimistix_lm(problem, sol.u, data, **tol)
+        results.append(sol)
+        steps += sol.steps
+        if sol.status is Status.MAX_STEPS:
+            sol = optimistix_lm(problem, sol.u, data, **tol)
+            results[-1] = sol
+            steps += sol.steps
     return sol, sigma, data, results, steps
 
 
@@ -295,7 +295,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
     problem, traces, channels = setup.problem, setup.traces, setup.channels
     r, predicted, J = evaluate(problem, u, data)
     r, J, u = np.asarray(r), np.asarray(J), np.asarray(u)
-    ok = all(_is(res, optx.RESULTS.successful) for res in results) and bool(np.all(np.isfinite(r)))
+    ok = all(s.converged for s in results) and bool(np.all(np.isfinite(r)))
     message = "successful" if ok else _message(results, r, max_steps)
     notes = list(setup.notes)
     if not ok:
@@ -383,12 +383,6 @@ def _residual_sigma(r, channels, traces, old):
     return out
 
 
-def _is(result, item) -> bool:
-    """Whether a solver result code is ``item`` (compared by meaning: the enumeration's
-    items do not compare equal across optimistix's and lineax's result classes)."""
-    return optx.RESULTS[result] == optx.RESULTS[item]
-
-
 #: A bell exponent below this is the degenerate flat bell (force stuck near F_rt/2).
 FLAT_BELL_B = 0.5
 #: A channel whose residual RMS exceeds this many times its sensor noise is a misfit.
@@ -473,12 +467,12 @@ def _input_noise_note(trace: Trace, p: EWBParams, tm: Mapping, nz: Mapping) -> l
     ]
 
 
-def _message(results, r, max_steps) -> str:
+def _message(results: list[Solution], r, max_steps) -> str:
     if not np.all(np.isfinite(r)):
         return "the model produced non-finite values at the solution"
-    for res in results:
-        if _is(res, optx.RESULTS.nonlinear_max_steps_reached):
+    for sol in results:
+        if sol.status is Status.MAX_STEPS:
             return f"step limit ({max_steps}) reached before the tolerances were met"
-        if not _is(res, optx.RESULTS.successful):
-            return str(optx.RESULTS[res])
+        if sol.status is not Status.SUCCESSFUL:
+            return sol.detail
     return "unknown failure"

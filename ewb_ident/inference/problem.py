@@ -11,7 +11,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ewb_ident.data.metrics import (
     noise_floor,
@@ -175,12 +174,6 @@ class StageProblem(eqx.Module):
             for ch in self.channels[k]:
                 res.append((pred[ch] - tr[ch]) / tr["sigma"][ch])
         return jnp.concatenate(res)
-
-
-@eqx.filter_jit
-def solve_problem(problem: StageProblem, u0, data, rtol, atol, max_steps):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    return optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
 
 
 @eqx.filter_jit
