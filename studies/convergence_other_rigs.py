@@ -135,7 +135,7 @@ def main() -> None:
 
 Command: `python studies/convergence_other_rigs.py {args.n} --seed {args.seed}`
 (traces from `tests/other_rig.py`, a SciPy simulator written separately from the
-model and from `ewb_ident/rig.py`; clean recordings of the seed chain).
+model and from `ewb_ident/rig/`; clean recordings of the seed chain).
 
 A case succeeds when the fit converged, passes its acceptance (`status` ok), fits the
 force to within 1.5x its sensor noise (the torque, when force is not recorded), and

@@ -128,7 +128,7 @@ def run(out_dir: Path, progress=None):
         "## What could not be reproduced, and why",
         "",
         "* The paper's recordings are not available: the experiment is re-created on the "
-        "synthetic rig (`ewb_ident/rig.py`) with Table 2's values and the paper's kind of "
+        "synthetic rig (`ewb_ident/rig/`) with Table 2's values and the paper's kind of "
         "input, so the fitted values here test the method, not the paper's rig.",
         "* The paper's motor parameters are not given in the brief; the rig uses this tool's "
         "nominal motor (R = 1 ohm, L = 2 mH, kb = kT = 0.1, M = 2e-4 kg m^2, v = 2e-3).",

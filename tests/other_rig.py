@@ -1,6 +1,6 @@
 """A second, independent rig simulator: "somebody else's rig" for the tests and studies.
 
-``ewb_ident/rig.py`` is one rig: its parameters sit within ~5 % of the seed's, and it was
+``ewb_ident/rig/`` is one rig: its parameters sit within ~5 % of the seed's, and it was
 written by the same hands as the fitted model. This module is written separately, with
 other tools and other habits, so that the fit is checked against traces it was not
 tuned to:

@@ -1,7 +1,7 @@
 """The whole-chain fit on somebody else's rig: every channel subset, profile and rate.
 
 Traces come from ``tests/other_rig.py``, a simulator written separately from the model
-and from ``ewb_ident/rig.py``, whose units are drawn over wide ranges (not near the
+and from ``ewb_ident/rig/``, whose units are drawn over wide ranges (not near the
 seed's values), with closed-loop position control at the logging rate, actuator
 saturation and quantised sensors. Each cell draws its own rig unit (a fresh seed per
 cell, never used to tune anything).
