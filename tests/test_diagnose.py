@@ -353,3 +353,38 @@ def test_a_rival_is_promoted_once_per_stage_set():
     )
     res = diagnose(trace)
     assert sorted(f.effect for f in res.findings if f.catalog) == ["backlash", "friction_speed"]
+
+
+def test_a_coarsely_rounded_channel_is_judged_on_its_rounding_error():
+    """A 12-bit angle held still rounds to one level: its residual is a constant within
+    +-q/2, serially correlated with no physics missing, and its second differences are
+    zero. The floor must not be halved (its white level is at least q/sqrt(12)) and the
+    correlation alone must not flag it; an excess above the noise still does. (Third-rig
+    case 2 of seed 20261219: clean, 1 kHz, reported unexplained at the motor and gap
+    stages' saturation.)"""
+    from ewb_ident.diagnosis.locate import StageCheck, coarsely_rounded, floor_scale, score_check
+
+    q = 0.879
+    n = 600
+    t = np.arange(n) * 0.001
+    labels = np.array(["saturation"] * n)
+    rng = np.random.default_rng(11)
+    # a slow move across 30 steps, then a hold 0.4 q off a level
+    ramp = 300.0 + 30 * q * np.arange(300) / 300
+    true = np.concatenate([ramp, np.full(300, ramp[-1] + 0.4 * q)])
+    true = true + 0.002 * rng.standard_normal(n)
+    measured = q * np.round(true / q)
+    sigma = np.full(n, q / np.sqrt(12.0))  # what sensor_noise says for such a channel
+    assert coarsely_rounded(measured)
+    check = StageCheck("motor", "theta_deg", measured, true, sigma, rounded=True)
+    assert floor_scale(check) >= 0.99  # was clipped to 0.5
+    [cell] = score_check(check, labels, t)
+    assert cell.rho > 0.5 and not cell.flagged, cell
+    # the same residual without the rounding flag is flagged by its correlation ...
+    [plain] = score_check(StageCheck("motor", "theta_deg", measured, true, sigma), labels, t)
+    assert plain.flagged
+    # ... and a real excess (a 1.5 q bias) is flagged even when rounded
+    biased = StageCheck("motor", "theta_deg", measured, true - 1.5 * q, sigma, rounded=True)
+    [bad] = score_check(biased, labels, t)
+    assert bad.flagged and bad.score > 2
+    assert not coarsely_rounded(true)

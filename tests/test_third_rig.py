@@ -103,3 +103,16 @@ def test_a_staircase_that_never_passes_c_holds_b_when_the_solver_wanders(tmp_pat
     correlations a-b +1.000). The fit now holds b when a solve did not converge and the
     piston never passes c, and converges."""
     _flank_fit_with_b_held(tmp_path, 20261216, 10, "never passes the bell's centre")
+
+
+@pytest.mark.slow
+def test_a_clean_trace_with_a_coarse_angle_is_diagnosed_clean(tmp_path):
+    """Case 2 of seed 20261219 (open-loop steps at 1 kHz, no current, a 0.88-degree angle
+    step): ``diagnose`` said ``unexplained`` at the motor and gap stages' saturation
+    (2.2x and 1.1x the noise), from the angle's rounding error: its floor was halved (zero
+    second differences) and its serial correlation read as structure."""
+    from ewb_ident.diagnosis.diagnose import diagnose
+
+    trace, _ = _case(tmp_path, 20261219, 2)
+    result = diagnose(trace)
+    assert result.verdict == "none", [(m.stage, m.phase, m.score) for m in result.mismatches]

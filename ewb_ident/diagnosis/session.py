@@ -26,6 +26,7 @@ from ewb_ident.diagnosis.correction import (
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
+    coarsely_rounded,
     phase_labels,
 )
 from ewb_ident.inference.augmented import (
@@ -296,11 +297,18 @@ class Session:
         return self.cache[key]
 
     def check(self, stage: str, f: AugFit) -> list[StageCheck]:
+        inp = STAGE_COLUMNS[stage][0] if stage in STAGE_COLUMNS else None
+        rounded_input = (
+            inp is not None and self.trace.has(inp) and coarsely_rounded(self.trace[inp])
+        )
         out = []
         for ch in STAGE_OUTPUTS[stage]:
             if ch in f.predictions and ch in self.sigma_tf:
+                rounded = rounded_input or coarsely_rounded(self.trace[ch])
                 out.append(
-                    StageCheck(stage, ch, self.trace[ch], f.predictions[ch], self.sigma_tf[ch])
+                    StageCheck(
+                        stage, ch, self.trace[ch], f.predictions[ch], self.sigma_tf[ch], rounded
+                    )
                 )
         return out
 
