@@ -66,7 +66,10 @@ RANGES: dict[str, tuple[str, float, float]] = {
     "friction_speed": ("kappa", 0.1, 0.35),  # sign drawn too
     "friction_fade": ("phi_per_K", 2.5e-3, 1e-2),
     "sensor_offset": ("offset", 0.5, 2.0),  # times 40 N (force) or 6 N m (torque); sign
-    "current_limit": ("i_max_A", 1.8, 3.2),
+    # A fraction of the case's own peak current without the limit (a limit above the
+    # peak never acts: drawn as 1.8-3.2 A, it sat above a position-controlled apply's
+    # peak in 4 of 8 cases of seed 20261218, visibility 0).
+    "current_limit": ("i_max_fraction", 0.45, 0.85),
     "stiction": ("tau_c_Nm", 0.01, 0.04),
 }
 IDS = tuple(RANGES)
@@ -120,7 +123,9 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
 
-def _effect(rng: np.random.Generator, eid: str, form: str = "self_locking"):
+def _effect(
+    rng: np.random.Generator, eid: str, form: str = "self_locking", peak_current_A: float = 3.5
+):
     from ewb_ident import rig
 
     name, lo, hi = RANGES[eid]
@@ -143,7 +148,7 @@ def _effect(rng: np.random.Generator, eid: str, form: str = "self_locking"):
         size = 40.0 if ch == "force_N" else 6.0
         return rig.SensorOffset(ch, float(rng.choice([-1.0, 1.0])) * m * size)
     if eid == "current_limit":
-        return rig.CurrentLimit(i_max_A=m)
+        return rig.CurrentLimit(i_max_A=m * peak_current_A)
     if eid == "stiction":
         return rig.Stiction(tau_c_Nm=m, tau_s_Nm=m * rng.uniform(1.0, 1.5))
     raise KeyError(eid)
@@ -209,8 +214,12 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = Fals
     options: dict[str, Any] = {}
     if profile == "steps":
         options["v_apply_V"] = float(rng.uniform(3.5, 5.0))
-    effects = [_effect(rng, eid, form) for eid in ids]
     kw = dict(profile=profile, sample_rate_hz=rate, duration_s=3.0, noise=noise, **options)
+    peak = 3.5
+    if "current_limit" in ids:
+        _, _, free = rig.simulate_rig(params, seed=i, return_clean=True, **kw)
+        peak = float(np.max(np.abs(free.states["current_A"])))
+    effects = [_effect(rng, eid, form, peak) for eid in ids]
     trace, truth, run = rig.simulate_rig(
         params, effects=effects, seed=i, name=f"case{i}", return_clean=True, **kw
     )
@@ -525,8 +534,10 @@ def run(
     cases: int | None = None,
     seed: int = SEED,
     widen: bool = False,
+    single: str | None = None,
 ):
-    """Run the study (resuming from ``out_dir/cases.csv``); returns (table, Markdown)."""
+    """Run the study (resuming from ``out_dir/cases.csv``); returns (table, Markdown).
+    With ``single``, only the single-effect cases of that catalog id."""
     import jax
     import pandas as pd
 
@@ -538,6 +549,8 @@ def run(
     plan = list(enumerate(case_plan()))[: cases or None]
     done = {int(r["case"]) for r in _all_rows(out_dir)}
     todo = [(i, k, ids) for i, (k, ids) in plan if i % shard[1] == shard[0]]
+    if single is not None:
+        todo = [(i, k, ids) for i, k, ids in todo if k == "single" and ids == (single,)]
     for n, (i, kind, ids) in enumerate(todo):
         if i not in done:
             _append(path, run_case(i, kind, ids, seed=seed, widen=widen))
@@ -563,6 +576,7 @@ def main() -> None:
     ap.add_argument(
         "--widen", action="store_true", help="vary the pad radius and drop current in ~half"
     )
+    ap.add_argument("--single", choices=IDS, help="only the single-effect cases of this id")
     args = ap.parse_args()
     if args.report_only:
         text = summarise(_all_rows(args.out), seed=args.seed, widen=args.widen)
@@ -576,7 +590,7 @@ def main() -> None:
 
     _, text = run(
         args.out, progress=progress, shard=(k, n), cases=args.cases, seed=args.seed,
-        widen=args.widen,
+        widen=args.widen, single=args.single,
     )  # fmt: skip
     print(text)
 
