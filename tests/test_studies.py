@@ -81,3 +81,22 @@ def test_bad_definitions_name_the_problem(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(StudyError, match=message):
         load_study(path)
+
+
+def test_every_drawn_current_limit_acts():
+    """The diagnosis accuracy study drew a current limit as 1.8-3.2 A, above a
+    position-controlled apply's peak current in 4 of its 8 cases of seed 20261218
+    (visibility 0: nothing to find, counted as misses). Drawn against the case's own
+    peak, every case's limit changes the recording by many times the noise."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
+    import diagnosis_accuracy as da
+
+    plan = da.case_plan()
+    cases = [i for i, (k, ids) in enumerate(plan) if k == "single" and ids == ("current_limit",)]
+    assert len(cases) == da.N_SINGLE_PER_ID
+    for i in cases:
+        *_, visibility = da.make_case(i, ("current_limit",), seed=20261218, widen=True)
+        assert visibility > 5.0, (i, visibility)
