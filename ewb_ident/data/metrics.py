@@ -83,7 +83,13 @@ def noise_sigma(y: ArrayLike) -> float:
     y = np.asarray(y, float)
     d2 = np.diff(y, n=2)
     mad = np.median(np.abs(d2 - np.median(d2)))
-    return float(max(1.4826 * mad / np.sqrt(6.0), quantisation_step(y) / np.sqrt(12.0)))
+    return float(max(1.4826 * mad / np.sqrt(6.0), rounding_error(y)))
+
+
+def rounding_error(y: ArrayLike) -> float:
+    """The standard deviation of a channel's rounding error, ``q / sqrt(12)`` for its
+    :func:`quantisation_step` ``q`` (0 for a channel not on a grid), in its unit."""
+    return quantisation_step(y) / np.sqrt(12.0)
 
 
 def quantisation_step(y: ArrayLike) -> float:

@@ -36,13 +36,14 @@ pads are open, and periodic content at the disc rotation frequency.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.metrics import noise_sigma, quantisation_step, smooth
+from ewb_ident.data.metrics import noise_sigma, rounding_error, smooth
 from ewb_ident.data.stages import STAGE_WORDS
 from ewb_ident.data.trace import Trace
 
@@ -143,6 +144,11 @@ class StageCheck:
         """Residual over the noise floor."""
         return self.residual / self.sigma
 
+    @functools.cached_property
+    def rounding(self) -> float:
+        """The measured channel's rounding error (0 when not on a grid), its unit."""
+        return rounding_error(self.measured)
+
 
 @dataclass(frozen=True)
 class Mismatch:
@@ -238,11 +244,10 @@ def floor_scale(check: StageCheck) -> float:
 
 
 def coarsely_rounded(y: np.ndarray) -> bool:
-    """Whether a channel's rounding error is at least half its noise: recorded on a grid
-    (:func:`ewb_ident.data.metrics.quantisation_step`) whose ``q / sqrt(12)`` is at least
-    half of :func:`ewb_ident.data.metrics.noise_sigma`."""
-    q = quantisation_step(y)
-    return q > 0 and q / np.sqrt(12.0) >= 0.5 * noise_sigma(y)
+    """Whether a channel's rounding error (:func:`ewb_ident.data.metrics.rounding_error`)
+    is at least half of its noise (:func:`ewb_ident.data.metrics.noise_sigma`)."""
+    e = rounding_error(y)
+    return e > 0 and e >= 0.5 * noise_sigma(y)
 
 
 def white_level(check: StageCheck, idx: np.ndarray | None = None) -> float:
@@ -258,10 +263,9 @@ def white_level(check: StageCheck, idx: np.ndarray | None = None) -> float:
     """
     r = check.normalized if idx is None else check.normalized[idx]
     level = noise_sigma(r)
-    q = quantisation_step(check.measured)
-    if q > 0:
+    if check.rounding > 0:
         s = check.sigma if idx is None else check.sigma[idx]
-        level = max(level, q / np.sqrt(12.0) / float(np.median(s)))
+        level = max(level, check.rounding / float(np.median(s)))
     return level
 
 

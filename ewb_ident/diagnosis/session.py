@@ -118,6 +118,8 @@ class Session:
                 "force_N, or force_N and torque_Nm); record these channels"
             )
         self.noise = {ch: sensor_noise(trace[ch]) for ch in CHANNELS if trace.has(ch)}
+        #: Channels (inputs included) on a grid coarse against their noise.
+        self.rounded = {ch for ch in self.cols if coarsely_rounded(trace[ch])}
         self.labels = phase_labels(trace)
         self.cache: dict[tuple, AugFit] = {}
         self.ctx = self._facts()
@@ -298,13 +300,10 @@ class Session:
 
     def check(self, stage: str, f: AugFit) -> list[StageCheck]:
         inp = STAGE_COLUMNS[stage][0] if stage in STAGE_COLUMNS else None
-        rounded_input = (
-            inp is not None and self.trace.has(inp) and coarsely_rounded(self.trace[inp])
-        )
         out = []
         for ch in STAGE_OUTPUTS[stage]:
             if ch in f.predictions and ch in self.sigma_tf:
-                rounded = rounded_input or coarsely_rounded(self.trace[ch])
+                rounded = inp in self.rounded or ch in self.rounded
                 out.append(
                     StageCheck(
                         stage, ch, self.trace[ch], f.predictions[ch], self.sigma_tf[ch], rounded

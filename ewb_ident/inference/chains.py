@@ -120,7 +120,7 @@ def run_chains(
     """Independent emcee ensembles from the least-squares optimum, extended until every
     convergence criterion holds or ``max_steps`` is reached."""
     s = settings
-    n_walkers, n_steps, max_steps = s.n_walkers, s.n_steps, s.max_steps
+    n_walkers, n_steps, max_steps = s.n_walkers, s.n_steps, s.step_limit
     n_ensembles, min_ess, seed = s.n_ensembles, s.min_ess, s.seed
     excluded = [
         n

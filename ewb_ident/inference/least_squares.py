@@ -295,6 +295,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
     problem, traces, channels = setup.problem, setup.traces, setup.channels
     r, predicted, J = evaluate(problem, u, data)
     r, J, u = np.asarray(r), np.asarray(J), np.asarray(u)
+    finite = bool(np.all(np.isfinite(r)) and np.all(np.isfinite(J)))
     ok = all(s.converged for s in results) and bool(np.all(np.isfinite(r)))
     message = "successful" if ok else _message(results, r, max_steps)
     notes = list(setup.notes)
@@ -309,7 +310,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
     ]
     unc = parameter_uncertainty(J, r, u, infos)
     stderr = dict(zip(names, unc.stderr, strict=True))
-    if np.all(np.isfinite(J)) and np.all(np.isfinite(r)):
+    if finite:
         notes += identifiability_notes(names, unc, stderr)
     else:
         notes.append(
@@ -326,7 +327,6 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         vals = problem.values(u, setup.base.as_dict() | {"theta0_deg": float(d["theta0_deg"])}, k)
         params.append(EWBParams(**{n: float(vals[n]) for n in MODEL_PARAMS}))
         theta0.append(float(vals["theta0_deg"]))
-    finite = np.all(np.isfinite(J)) and np.all(np.isfinite(r))
     if finite and setup.stage in ("force", "chain") and any(n in setup.free for n in "abc"):
         notes += saturation_notes(traces, preds, params, unc.corr, names)
     trace_metrics = tuple(

@@ -72,6 +72,11 @@ class SamplerSettings:
     max_draws: int = 1000
     seed: int = 0
 
+    @property
+    def step_limit(self) -> int:
+        """Most steps per ensemble: ``max_steps``, else ten times ``n_steps``."""
+        return self.max_steps or 10 * self.n_steps
+
     def check(self) -> None:
         """Raise :class:`SampleError` naming the first setting that cannot be used."""
         s = self

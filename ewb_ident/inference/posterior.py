@@ -175,7 +175,6 @@ def sample(
     settings.check()
     stages = _stage_list(stage, traces)
     prior_table = load_priors(priors)
-    settings = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
     return _sample(
         traces, stages, free, per_trace, fixed, prior_table, settings, integrator, progress
     )
@@ -288,20 +287,18 @@ def sample_corrected(
     settings.check()
     prior_table = load_priors(priors)
     t_start = time.perf_counter()
-    cf = corrected
     start = _corrected_start(trace, corrected)
     table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
     t_fit = time.perf_counter()
     lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
-    longest = dataclasses.replace(settings, max_steps=max_steps or 10 * n_steps)
-    run = run_chains(lp, [start], names, u0, table, longest, progress)
-    notes = [f"least-squares start (corrected chain): {w}" for w in cf.warnings]
+    run = run_chains(lp, [start], names, u0, table, settings, progress)
+    notes = [f"least-squares start (corrected chain): {w}" for w in corrected.warnings]
     result = assemble(
         [start], (trace,), ("chain",), lp, names, segs, run, table, settings, notes, None,
-        cf.params,
+        corrected.params,
     )  # fmt: skip
     return dataclasses.replace(
-        result, timing=run.timing(t_start, t_fit), mechanisms=tuple(cf.mechanisms)
+        result, timing=run.timing(t_start, t_fit), mechanisms=tuple(corrected.mechanisms)
     )
 
 
