@@ -313,3 +313,64 @@ def test_a_dead_band_within_the_logged_voltages_noise_is_named_as_possibly_that_
         {"tau_c_Nm": 0.05}, {}, ctx | {"voltage_noise_V": 0.034}
     )
     assert "Caution" not in wide
+
+
+def test_levenberg_marquardt_is_not_stalled_by_heavy_weights():
+    # Residuals weighted by a small noise level make J^T J large; a damping scaled by its
+    # largest diagonal damped the first step to nothing and ended the solve, "converged",
+    # at its start (a chain fit with stiction and hysteresis stopped 20 % above its
+    # baseline that way).
+    from ewb_ident.inference.solvers import levenberg_marquardt
+
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((300, 3))
+    y = X @ np.array([1.0, -2.0, 0.5]) + 0.01 * rng.standard_normal(300)
+    w = 1e7
+
+    def fun(u):
+        return w * (X @ np.asarray(u) - y)
+
+    sol = levenberg_marquardt(fun, lambda u: (fun(u), w * X, None), np.zeros(3))
+    assert sol.converged
+    np.testing.assert_allclose(sol.u, np.linalg.lstsq(X, y, rcond=None)[0], rtol=1e-6)
+
+
+def _no_current_session(effect, seed: int, profile: str = "position", rate: float = 500.0):
+    from ewb_ident.diagnosis.session import Session
+
+    noise = rig.SensorNoise()
+    trace, _ = rig.simulate_rig(
+        profile=profile, sample_rate_hz=rate, duration_s=3.0, effects=[effect], seed=seed,
+        noise=noise,
+    )
+    trace = dataclasses.replace(
+        trace, channels={c: v for c, v in trace.channels.items() if c != "current_A"}
+    )
+    ses = Session(trace)
+    ses.baseline()
+    return ses
+
+
+def test_a_current_limit_well_under_the_peak_is_fitted_without_a_current_sensor():
+    # Without current_A the limit's starts came from a default 4 A peak, all above a
+    # limit of ~0.5 A, where the limit does not act and its slope is zero.
+    _, _, free = rig.simulate_rig(
+        profile="position", sample_rate_hz=500.0, duration_s=3.0, seed=11, return_clean=True
+    )
+    i_max = 0.45 * float(np.max(np.abs(free.states["current_A"])))
+    ses = _no_current_session(rig.CurrentLimit(i_max_A=i_max), seed=11)
+    f = ses.fit(("motor",), [CurrentLimit()], explore=[True])
+    assert f.mechanisms[0].values()["i_max_A"] == pytest.approx(i_max, rel=0.05)
+
+
+def test_a_wedge_load_torque_of_both_forms_is_fitted_without_a_current_sensor():
+    # No start held both a friction-like part and a reaction; the fit stopped worse than
+    # the baseline.
+    truth = rig.WedgeLoadTorque(k_w=3e-5, omega0_rad_s=0.5, k_r=2e-5)
+    ses = _no_current_session(truth, seed=12, profile="steps", rate=1000.0)
+    f0 = ses.fit(("motor",), [])
+    f = ses.fit(("motor",), [WedgeLoadTorque()], explore=[True])
+    vals = f.mechanisms[0].values()
+    assert f.rss < 0.01 * f0.rss
+    assert vals["k_w"] == pytest.approx(3e-5, rel=0.2)
+    assert vals["k_r"] == pytest.approx(2e-5, rel=0.2)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from ewb_ident.data.metrics import channel_metrics, noise_sigma, sensor_noise
+from ewb_ident.data.metrics import channel_metrics, noise_sigma, sensor_noise, smooth
 from ewb_ident.data.stages import (
     CHANNELS,
     STAGE,
@@ -183,6 +183,8 @@ class Session:
         self.ctx |= {"kT": kT, "R": R}
         if tr.has("voltage_V") and R > 0:
             self.ctx["stall_torque_Nm"] = stall_torque(tr, kT, R)
+            if tr.has("theta_deg"):
+                self.ctx["current_demand_A"] = current_demand(tr, vals["kb"], R)
         self.sigma_tf = self._stage_sigma(vals)
         # The displacement that drives a hysteresis state: averaged over about 10 ms,
         # then through a play twice as wide as the averaged noise (sensor noise must not
@@ -420,6 +422,20 @@ def chain_prefixed(ev: Mapping[str, float] | None) -> dict[str, float]:
 
 def fitted_mechanism(f: AugFit, variant: str) -> AbstractMechanism:
     return next(m for m in f.mechanisms if m.variant == variant)
+
+
+def current_demand(trace: Trace, kb: float, R: float) -> float:
+    """The largest current the voltage asks for at the recorded speed, A.
+
+    ``(V - kb omega) / R`` with the armature's inductance neglected, its speed from the
+    angle smoothed over about 10 ms; the 99.5th percentile of its size, so that a few
+    noisy samples do not set it. A trace without a current sensor has no other measure
+    of the current a driver may have limited.
+    """
+    width = max(3, round(0.01 / trace.dt)) | 1
+    omega = np.gradient(smooth(trace["theta_deg"], width), trace.dt) * (np.pi / 180.0)
+    demand = (trace["voltage_V"] - kb * omega) / R
+    return float(np.percentile(np.abs(demand), 99.5))
 
 
 def stall_torque(trace: Trace, kT: float, R: float) -> float:

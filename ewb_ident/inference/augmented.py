@@ -310,7 +310,8 @@ def fit_mechanisms(
     max_steps
         Solver step limit per start.
     n_best
-        Number of the best starting points (over all) the solver runs from.
+        Number of the best starting points (over all, and of each alternative) the
+        solver runs from.
     """
     stages = tuple(stages)
     mechs = tuple(mechanisms)
@@ -357,10 +358,8 @@ def fit_mechanisms(
     ranked = [int(i) for i in np.argsort(costs)]
     order = ranked[: max(1, n_best)]
     group = np.asarray(group)
-    for g in range(1, len(bases)):  # the best start of each alternative too
-        best_g = next((i for i in ranked if group[i] == g), None)
-        if best_g is not None and best_g not in order:
-            order.append(best_g)
+    for g in range(1, len(bases)):  # the best starts of each alternative too
+        order += [i for i in ranked if group[i] == g and i not in order][: max(1, n_best)]
 
     best = None
     for i in order:

@@ -107,7 +107,10 @@ def levenberg_marquardt(
     if not np.all(np.isfinite(J)):
         return Solution(u, cost, Status.NONFINITE, 0)
     A, g = J.T @ J, J.T @ r
-    lam = 1e-3 * float(np.max(np.diag(A))) if A.size else 0.0
+    # The damping multiplies Marquardt's scale diag(J^T J), so it is a pure number: one
+    # scaled by the largest diagonal (Nielsen's start for an identity damping) would damp
+    # a weighted problem's steps to nothing and end it, "converged", where it started.
+    lam = 1e-3
     nu = 2.0
     for step in range(1, max_steps + 1):
         if A.size == 0:
@@ -143,6 +146,6 @@ def levenberg_marquardt(
                 return Solution(u, cost, Status.SUCCESSFUL, step)
         else:
             lam, nu = lam * nu, nu * 2.0
-            if lam > 1e16 * max(float(np.max(D)), 1.0):
+            if lam > 1e16:
                 return Solution(u, cost, Status.SUCCESSFUL, step)
     return Solution(u, cost, Status.MAX_STEPS, max_steps)

@@ -48,8 +48,14 @@ class CurrentLimit(AbstractMechanism):
         return ("theta_deg", "current_A")
 
     def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
-        peak = float(ctx.get("current_peak_A", 4.0)) or 4.0
-        return [{"i_max_A": f * peak} for f in (0.4, 0.6, 0.8, 0.95)]
+        peak = float(ctx.get("current_peak_A", 0.0))
+        if peak > 0:
+            return [{"i_max_A": f * peak} for f in (0.4, 0.6, 0.8, 0.95)]
+        # No current sensor: the current the voltage asks for at the recorded speed. It
+        # bounds the limit from above, loosely (a limit holds the speed down, and a fit
+        # of the motor without the limit has compensated), so the starts span 30x below.
+        demand = float(ctx.get("current_demand_A", 0.0)) or 4.0
+        return [{"i_max_A": f * demand} for f in (0.03, 0.06, 0.12, 0.25, 0.5, 0.8)]
 
     def voltage(self, V: jnp.ndarray, s: jnp.ndarray, p: EWBParams) -> jnp.ndarray:
         lim = p.R * self.i_max_A

@@ -92,7 +92,10 @@ class WedgeLoadTorque(AbstractMechanism):
             for w in (0.1, 1.0)
         ]
         reaction = [{"k_w": 1e-7, "omega0_rad_s": 1.0, "k_r": k} for k in (-1e-5, 1e-5, 3e-5)]
-        return friction + reaction
+        both = [
+            {"k_w": k, "omega0_rad_s": 1.0, "k_r": r} for k in (1e-5, 3e-5) for r in (1e-5, 3e-5)
+        ]
+        return friction + reaction + both
 
     def implausible_reason(self, values, stderr) -> str:
         """Neither part too large, and at least one resolved. A part at no effect is
