@@ -1,13 +1,13 @@
 """Do the intervals of a, b, c, mu hold once the diagnosed physics is added? (issue 10)
 
-    python studies/corrected_calibration.py [--per-id 10] [--shard K/N]
+    python studies/corrected_calibration.py [--per-id 10] [--shard K/N] [--seed S]
     python studies/corrected_calibration.py --report-only
 
 For every catalog id, ``--per-id`` fresh concealed traces are drawn exactly as the
 diagnosis accuracy study draws its single-effect cases (``diagnosis_accuracy.make_case``:
 a rig unit varied by 5 %, steps / position / staircase, 100 Hz to 1 kHz, 0.5-2x noise,
-the effect's size log-uniform over its range), with this study's own seed (20261125),
-so no case was seen before. Each trace is
+the effect's size log-uniform over its range), with this study's own seed (20261125;
+``--seed`` draws others), so no case was seen before. Each trace is
 
 * fitted by the baseline whole-chain least squares (``ewb_ident.fit``), and
 * diagnosed (``ewb_ident.diagnosis.diagnose``); the corrected model is the whole chain refitted
@@ -48,7 +48,7 @@ def plan(per_id: int) -> list[str]:
     return [eid for _ in range(per_id) for eid in da.IDS]
 
 
-def run_case(i: int, eid: str) -> dict:
+def run_case(i: int, eid: str, seed: int = SEED) -> dict:
     import jax
 
     from ewb_ident import rig
@@ -56,8 +56,8 @@ def run_case(i: int, eid: str) -> dict:
     from ewb_ident.inference.least_squares import fit
 
     jax.config.update("jax_enable_x64", True)
-    trace, effects, setting, visibility = da.make_case(i, (eid,), seed=SEED)
-    truth = rig.vary(rig.RigParams(), np.random.default_rng([SEED, i]), rel=0.05)
+    trace, effects, setting, visibility = da.make_case(i, (eid,), seed=seed)
+    truth = rig.vary(rig.RigParams(), np.random.default_rng([seed, i]), rel=0.05)
     mu_true = _mu_at_model_reference(trace, effects, float(truth.mu))
     row = {"case": i, "effect": eid, **setting, "visibility": round(visibility, 3)}
     t0 = time.perf_counter()
@@ -100,15 +100,16 @@ def _mu_at_model_reference(trace, effects, mu_rig: float) -> float:
     return mu_rig
 
 
-def report(rows: list[dict], per_id: int) -> str:
+def report(rows: list[dict], per_id: int, seed: int = SEED) -> str:
     import pandas as pd
 
     df = pd.DataFrame(rows)
     lines = [
         "# Interval coverage of a, b, c, mu: baseline against corrected model",
         "",
-        f"Command: `python studies/corrected_calibration.py --per-id {per_id}` "
-        f"({len(df)} fresh concealed traces, seed {SEED}; nominal 90 % intervals are "
+        f"Command: `python studies/corrected_calibration.py --per-id {per_id}"
+        + (f" --seed {seed}" if seed != SEED else "")
+        + f"` ({len(df)} fresh concealed traces, seed {seed}; nominal 90 % intervals are "
         "estimate +- 1.645 least-squares standard errors).",
         "",
         "The corrected model is the whole chain refitted with what `diagnose` found; when it "
@@ -154,6 +155,7 @@ def main() -> None:
     ap.add_argument("--shard", default="0/1")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--seed", type=int, default=SEED, help="draw other cases")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     todo = plan(args.per_id)
@@ -171,7 +173,7 @@ def main() -> None:
         for i, eid in enumerate(todo):
             if i % n != k or i in done:
                 continue
-            row = run_case(i, eid)
+            row = run_case(i, eid, args.seed)
             new = not store.exists()
             with open(store, "a", newline="") as handle:
                 w = csv.DictWriter(handle, fieldnames=list(row))
@@ -188,7 +190,7 @@ def main() -> None:
     if len(rows) < len(todo):
         print(f"{len(rows)}/{len(todo)} cases done")
     if rows:
-        write_text(args.out / "README.md", report(rows, args.per_id))
+        write_text(args.out / "README.md", report(rows, args.per_id, args.seed))
         print(f"wrote {args.out / 'README.md'}")
 
 
