@@ -412,18 +412,21 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     The chain runs from the logged voltage, which carries no sensor noise into the
     model: a finding must also improve it (dBIC <= -threshold). That guards against
     explaining artefacts of a teacher-forced stage (noise on its measured input bends a
-    nonlinear stage's output, a bias no mechanism should take the blame for). Returns
-    the findings kept, the chain evidence of each, and those the chain did not confirm.
+    nonlinear stage's output, a bias no mechanism should take the blame for). A catalog
+    mechanism the chain did not confirm is tried again on top of those confirmed after
+    it (two effects can each show in the chain only once the other is modelled: a
+    backlash under a hysteresis loop), before the generic corrections. Returns the
+    findings kept, the chain evidence of each, and those the chain did not confirm.
     """
-    added: list[AbstractMechanism] = list(work.selected) + [
-        fitted_mechanism(f, f"unexplained_{s}") for s, f, _, _ in work.corrections
-    ]
+    catalog = list(work.selected)
+    generic = [fitted_mechanism(f, f"unexplained_{s}") for s, f, _, _ in work.corrections]
     chain_ev: dict[str, dict[str, float]] = {}
-    unconfirmed: list[tuple[AbstractMechanism, dict[str, float]]] = []
     if not chain.ok:
-        return added, chain_ev, unconfirmed
+        return catalog + generic, chain_ev, []
     kept: list[AbstractMechanism] = []
-    for m in added:
+    last: dict[str, tuple[AbstractMechanism, dict[str, float]]] = {}
+
+    def confirmed(m: AbstractMechanism) -> bool:
         prev = chain.fits[-1]
         mechs = [mechanism_start(x, prev) for x in [*kept, m]]
         f = fit_mechanisms(
@@ -438,13 +441,24 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
             alt_starts=[{n: ses.values[n] for n in chain.free if n in ses.values}],
         )
         ev = bic_evidence(f, prev, chain.sigma)
-        if ev["delta_bic"] <= -bic_threshold:
-            kept.append(m)
-            chain.fits.append(f)
-            chain_ev[m.variant] = ev
-        else:
-            unconfirmed.append((m, ev))
-    return kept, chain_ev, unconfirmed
+        if ev["delta_bic"] > -bic_threshold:
+            last[m.variant] = (m, ev)
+            return False
+        kept.append(m)
+        chain.fits.append(f)
+        chain_ev[m.variant] = ev
+        last.pop(m.variant, None)
+        return True
+
+    pending = catalog
+    while pending:
+        failed = [m for m in pending if not confirmed(m)]
+        if len(failed) == len(pending):
+            break
+        pending = failed
+    for m in generic:
+        confirmed(m)
+    return kept, chain_ev, list(last.values())
 
 
 def _stage_metrics(ses: Session, checks: dict) -> dict[str, dict[str, Any]]:
