@@ -388,3 +388,20 @@ def test_a_coarsely_rounded_channel_is_judged_on_its_rounding_error():
     [bad] = score_check(biased, labels, t)
     assert bad.flagged and bad.score > 2
     assert not coarsely_rounded(true)
+
+
+@pytest.mark.slow
+def test_two_effects_that_show_in_the_chain_only_together_are_both_named():
+    """Case 7 of the widened accuracy study's seed 20261227 (hysteresis and backlash, no
+    current): backlash alone did not improve the whole chain run from the voltage, so it
+    was dropped before hysteresis was confirmed, and a generic correction took its
+    place. Tried again on top of the hysteresis, it is confirmed."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
+    import diagnosis_accuracy as da
+
+    trace, *_ = da.make_case(7, ("force_hysteresis", "backlash"), seed=20261227, widen=True)
+    res = diagnose(trace)
+    assert {f.effect for f in res.findings} == {"force_hysteresis", "backlash"}, res.summary()
