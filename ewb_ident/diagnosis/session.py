@@ -432,7 +432,7 @@ def current_demand(trace: Trace, kb: float, R: float) -> float:
     noisy samples do not set it. A trace without a current sensor has no other measure
     of the current a driver may have limited.
     """
-    width = max(3, round(0.01 / trace.dt)) | 1
+    width = max(3, round(X_SMOOTH_S / trace.dt)) | 1
     omega = np.gradient(smooth(trace["theta_deg"], width), trace.dt) * (np.pi / 180.0)
     demand = (trace["voltage_V"] - kb * omega) / R
     return float(np.percentile(np.abs(demand), 99.5))
