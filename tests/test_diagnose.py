@@ -134,6 +134,27 @@ def test_friction_speed_slope_is_recovered():
     assert top.params["kappa"] / w_ref == pytest.approx(truth, rel=0.25)
 
 
+def test_a_friction_law_under_the_location_thresholds_is_screened_and_named():
+    """Was ``none``: a speed-dependent friction coefficient hides in the refitted mu, and
+    what is left (kappa -0.04 here; cases 12 and 91 of the widened study's seed 20261229,
+    visibility 1.3-2.1) stays under the location test's thresholds. The friction laws
+    are tried on every trace; the evidence test names it, and the mismatch is listed
+    (``none`` only when nothing is located)."""
+    params = dataclasses.replace(P, disc_speed_end_rad_s=30.0)
+    effects = [rig.FrictionSpeed(kappa=-0.04)]
+    trace, _ = rig.simulate_rig(params, effects=effects, name="weak_speed", **SETTINGS)
+    res = diagnose(trace)
+    assert not any(c.flagged for c in res.cells)  # the location test alone: none
+    assert res.verdict == "found", res.summary()
+    [top] = res.findings
+    assert top.effect == "friction_speed"
+    w_ref = float(np.mean(trace["disc_speed_rad_s"][res.labels != "gapping"]))
+    truth = -0.04 / 50.0 / (1 - 0.04 * (w_ref - 50.0) / 50.0)
+    assert abs(top.params["kappa"] / w_ref - truth) < 3 * top.stderr["kappa"] / w_ref
+    [m] = res.mismatches
+    assert m.stage == "torque" and "targeted test of friction_speed" in m.summary
+
+
 @pytest.mark.parametrize("effect", ["backlash", "force_hysteresis", "sensor_offset"])
 def test_after_augmentation_the_stage_fits_to_the_noise(effect):
     """Judged against the rig's known sensor noise (rig.SensorNoise defaults), not the

@@ -164,6 +164,7 @@ def diagnose(
     lap("unknown")
     say("confirming the findings on the whole chain")
     added, chain_ev, unconfirmed = _confirm(ses, chain, work, bic_threshold)
+    located = flagged + _screened_cells(cells, added, flagged, work)
     lap("chain")
     checks_after = {
         (c.stage, c.channel): c for s in ses.stages for c in ses.check(s, work.current[s])
@@ -173,12 +174,12 @@ def diagnose(
     findings = _findings(
         ses, trace, chain, work, added, chain_ev, flagged, stage_before, stage_after
     )
-    verdict, notes = _verdict(ses, work, findings, flagged, unconfirmed, bic_threshold)
+    verdict, notes = _verdict(ses, work, findings, located, unconfirmed, bic_threshold)
     timings["total"] = time.perf_counter() - t_start
     return DiagnosisResult(
         trace_name=trace.name,
         verdict=verdict,
-        mismatches=tuple(flagged),
+        mismatches=tuple(located),
         cells=tuple(cells),
         findings=tuple(findings),
         candidates=tuple(work.candidates),
@@ -269,8 +270,7 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
     work = _Work(current=dict(ses.base_fits))
     still = set(located)
     for rnd in range(1, max_mechanisms + 1):
-        if not still:
-            break
+        # Nothing located: only the screened mechanisms are tried (see ``_try``).
         done = {m.variant for m in work.selected}
         results = []
         for tmpl in pool:
@@ -313,9 +313,11 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
 
 def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
     """Fit one catalog mechanism at its stages on top of those selected, and judge it;
-    ``None`` when it does not act on a located stage or the trace cannot show it."""
+    ``None`` when it does not act on a located stage (unless it is screened: tried on
+    every trace, :attr:`~ewb_ident.mechanisms.base.AbstractMechanism.SCREENED`) or the
+    trace cannot show it."""
     mst = ses.mechanism_stages(tmpl)
-    if not mst or not set(mst) & still:
+    if not mst or not (set(mst) & still or tmpl.SCREENED):
         return None
     if tmpl.unsupported_reason(ses.cols, ses.ctx):
         return None
@@ -459,6 +461,30 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     for m in generic:
         confirmed(m)
     return kept, chain_ev, list(last.values())
+
+
+def _screened_cells(cells, added, flagged, work: _Work) -> list[Mismatch]:
+    """The mismatch a confirmed screened mechanism located where the location test
+    flagged nothing: its stage's most severe cell, flagged, with the evidence in words
+    (a diagnosis that names physics has located a mismatch: never ``none``)."""
+    out: list[Mismatch] = []
+    stages = {m.stage for m in flagged}
+    for mech in added:
+        if not getattr(mech, "SCREENED", False) or mech.stage in stages:
+            continue
+        own = [c for c in cells if c.stage == mech.stage]
+        if not own:
+            continue
+        worst = max(own, key=lambda c: c.score)
+        ev = work.evidence[mech.variant]
+        summary = (
+            f"{worst.summary} Under the location test's thresholds (the refitted friction "
+            f"coefficient absorbs most of it); located by the targeted test of "
+            f"{mech.id} (ΔBIC {ev['delta_bic']:.0f})."
+        ).strip()
+        out.append(Mismatch(**{**worst.__dict__, "flagged": True, "summary": summary}))
+        stages.add(mech.stage)
+    return out
 
 
 def _stage_metrics(ses: Session, checks: dict) -> dict[str, dict[str, Any]]:

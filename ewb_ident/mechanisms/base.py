@@ -94,6 +94,12 @@ class AbstractMechanism(eqx.Module):
     NUISANCE: ClassVar[tuple[str, ...]] = ()
     #: Trace columns the mechanism needs beyond those of its stages.
     NEEDS: ClassVar[tuple[str, ...]] = ()
+    #: Tried at its stage even where the location test flags nothing: the mechanism
+    #: modulates a gain the baseline refits (the friction coefficient), so the refitted
+    #: gain absorbs most of it and the rest can stay under the location thresholds.
+    #: Its targeted evidence test (dBIC, plausibility, explained share, the chain) then
+    #: decides alone.
+    SCREENED: ClassVar[bool] = False
 
     # ------------------------------------------------------------------ declarations
 

@@ -39,6 +39,7 @@ class FrictionFade(AbstractMechanism):
     hook: ClassVar[str] = "friction_coefficient"
     physics: ClassVar[str] = "the pad friction coefficient falls as braking energy heats the pads"
     NEEDS: ClassVar[tuple[str, ...]] = ("disc_speed_rad_s",)
+    SCREENED: ClassVar[bool] = True
     #: The factor uses the dissipated energy (computed from the other factors first).
     USES_ENERGY: ClassVar[bool] = True
 

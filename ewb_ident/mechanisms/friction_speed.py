@@ -40,6 +40,7 @@ class FrictionSpeed(AbstractMechanism):
     hook: ClassVar[str] = "friction_coefficient"
     physics: ClassVar[str] = "the pad friction coefficient depends on the disc sliding speed"
     NEEDS: ClassVar[tuple[str, ...]] = ("disc_speed_rad_s",)
+    SCREENED: ClassVar[bool] = True
 
     kappa: ArrayLike = 0.0
 
