@@ -113,7 +113,9 @@ def test_wedge_reaction_form_is_named_in_a_closed_loop_trace():
         profile="position",
         seed=7,
         sample_rate_hz=200.0,
-        duration_s=3.0,
+        # The shape of the other traces here, so their compiled programs are reused.
+        duration_s=2.0,
+        hold_s=0.85,
     )
     res = diagnose(trace, catalog=["wedge_load_torque", "stiction", "current_limit"])
     assert res.verdict == "found", res.summary()

@@ -335,6 +335,25 @@ def test_levenberg_marquardt_is_not_stalled_by_heavy_weights():
     np.testing.assert_allclose(sol.u, np.linalg.lstsq(X, y, rcond=None)[0], rtol=1e-6)
 
 
+def test_levenberg_marquardt_refuses_a_step_where_jtj_overflows():
+    # Was: "RuntimeWarning: overflow encountered in matmul" (J^T J of a Jacobian of 1e200
+    # after a step that lowered the cost; a diagnosis of a 2 s closed-loop trace with a
+    # wedge reaction took such a step), then a damped system of infinities. The step is
+    # refused like one to where the model has no slope.
+    from ewb_ident.inference.solvers import levenberg_marquardt
+
+    def fun(u):
+        return np.asarray(u) - 3.0
+
+    def fun_and_jac(u):
+        steep = 1e200 if float(u[0]) >= 2.5 else 1.0
+        return fun(u), np.array([[steep]]), None
+
+    sol = levenberg_marquardt(fun, fun_and_jac, np.zeros(1))
+    assert np.all(np.isfinite(sol.u)) and float(sol.u[0]) < 2.5
+    assert np.isfinite(sol.cost) and sol.cost < 9.0  # moved toward 3 without crossing
+
+
 def _no_current_session(effect, seed: int, profile: str = "position", rate: float = 500.0):
     from ewb_ident.diagnosis.session import Session
 

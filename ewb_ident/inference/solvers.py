@@ -104,9 +104,10 @@ def levenberg_marquardt(
     cost = float(r @ r)
     if not np.isfinite(cost):
         return Solution(u, float("inf"), Status.NONFINITE, 0)
-    if not np.all(np.isfinite(J)):
+    with np.errstate(over="ignore", invalid="ignore"):
+        A, g = J.T @ J, J.T @ r
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
         return Solution(u, cost, Status.NONFINITE, 0)
-    A, g = J.T @ J, J.T @ r
     # The damping multiplies Marquardt's scale diag(J^T J), so it is a pure number: one
     # scaled by the largest diagonal (Nielsen's start for an identity damping) would damp
     # a weighted problem's steps to nothing and end it, "converged", where it started.
@@ -127,19 +128,22 @@ def levenberg_marquardt(
         r_new = np.asarray(fun(jnp.asarray(u_new)))
         with np.errstate(over="ignore", invalid="ignore"):
             cost_new = float(r_new @ r_new)
-        predicted = float(-2.0 * g @ delta - delta @ A @ delta)
-        rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
+            predicted = float(-2.0 * g @ delta - delta @ A @ delta)
+        rho = (cost - cost_new) / predicted if np.isfinite(predicted) and predicted > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
             r_j, J_j, _ = fun_and_jac(jnp.asarray(u_new))
-            J_j = np.asarray(J_j)
-            if not np.all(np.isfinite(J_j)):  # a step to where the model has no slope
+            r_j, J_j = np.asarray(r_j), np.asarray(J_j)
+            with np.errstate(over="ignore", invalid="ignore"):
+                A_j, g_j = J_j.T @ J_j, J_j.T @ r_j
+            # A step to where the model has no slope, or one so steep that J^T J
+            # overflows (an exponent's parameter far out): not taken.
+            if not (np.all(np.isfinite(A_j)) and np.all(np.isfinite(g_j))):
                 lam, nu = lam * nu, nu * 2.0
                 continue
             small = cost - cost_new <= rtol * cost
             tiny = np.linalg.norm(delta) <= xtol * (np.linalg.norm(u) + xtol)
             u, cost = u_new, cost_new
-            r, J = np.asarray(r_j), J_j
-            A, g = J.T @ J, J.T @ r
+            r, J, A, g = r_j, J_j, A_j, g_j
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small or tiny:
