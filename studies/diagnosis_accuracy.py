@@ -124,33 +124,66 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
 
 
 def _effect(
-    rng: np.random.Generator, eid: str, form: str = "self_locking", peak_current_A: float = 3.5
+    rng: np.random.Generator,
+    eid: str,
+    form: str | None = None,
+    peak_current_A: float = 3.5,
+    rng_form: np.random.Generator | None = None,
 ):
+    """One effect of size drawn from :data:`RANGES` in the physical ``form`` of
+    :data:`FORMS` (default: the first); a second form's own settings come from
+    ``rng_form``, so the draws of ``rng`` are the same whatever the form."""
     from ewb_ident import rig
 
+    form = form or FORMS[eid][0]
+    if form not in FORMS[eid]:
+        raise KeyError(f"{eid}: no form {form!r}")
+    rf = rng_form if rng_form is not None else np.random.default_rng(0)
     name, lo, hi = RANGES[eid]
     m = _log_uniform(rng, lo, hi)
     if eid == "backlash":
-        return rig.Backlash(beta_deg=m)
+        spring = _log_uniform(rf, 0.02, 0.2) if form == "spring" else 0.0
+        return rig.Backlash(beta_deg=m, spring_tau_s=spring)
     if eid == "wedge_load_torque":
         k_w, k_r = WEDGE_FORMS[form]
         return rig.WedgeLoadTorque(k_w=k_w * m, k_r=k_r * m)
     if eid == "force_hysteresis":
-        return rig.ForceHysteresis(h=m)
+        delta = _log_uniform(rf, 6e-5, 1.5e-4) if form == "slow" else 2e-5
+        return rig.ForceHysteresis(h=m, delta_m=delta)
     if eid == "sensor_delay":
-        return rig.SensorDelay(str(rng.choice(["force_N", "torque_Nm", "x_m"])), m)
+        kind = "lag" if form == "lag" else "transport"
+        return rig.SensorDelay(str(rng.choice(["force_N", "torque_Nm", "x_m"])), m, kind=kind)
     if eid == "friction_speed":
-        return rig.FrictionSpeed(kappa=float(rng.choice([-1.0, 1.0])) * m)
+        law = "exponential" if form == "exponential" else "linear"
+        return rig.FrictionSpeed(kappa=float(rng.choice([-1.0, 1.0])) * m, law=law)
     if eid == "friction_fade":
+        if form == "surface":
+            # Surface temperature that follows the braking power (cools within ~1 s), the
+            # heat capacity scaled so the size is comparable with the energy form's.
+            tau = _log_uniform(rf, 0.3, 1.0)
+            return rig.FrictionFade(
+                phi_per_K=m, heat_capacity_J_per_K=1500.0 * tau / 1.5, tau_thermal_s=tau
+            )
         return rig.FrictionFade(phi_per_K=m)
     if eid == "sensor_offset":
         ch = str(rng.choice(["force_N", "torque_Nm"]))
         size = 40.0 if ch == "force_N" else 6.0
-        return rig.SensorOffset(ch, float(rng.choice([-1.0, 1.0])) * m * size)
+        value = float(rng.choice([-1.0, 1.0])) * m * size
+        if form == "drift":
+            # A zero that drifts from 0 to twice the size over a 3 s trace.
+            return rig.SensorOffset(ch, 0.0, drift_per_s=2.0 * value / 3.0)
+        return rig.SensorOffset(ch, value)
     if eid == "current_limit":
-        return rig.CurrentLimit(i_max_A=m * peak_current_A)
+        return rig.CurrentLimit(i_max_A=m * peak_current_A, kind=form)
     if eid == "stiction":
-        return rig.Stiction(tau_c_Nm=m, tau_s_Nm=m * rng.uniform(1.0, 1.5))
+        ratio = rng.uniform(1.0, 1.5)
+        if form == "stribeck":
+            return rig.Stiction(
+                tau_c_Nm=m,
+                tau_s_Nm=m * (2.0 * ratio - 1.0),
+                stribeck_rad_s=_log_uniform(rf, 0.5, 3.0),
+            )
+        return rig.Stiction(tau_c_Nm=m, tau_s_Nm=m * ratio)
     raise KeyError(eid)
 
 
@@ -180,15 +213,41 @@ WEDGE_FORMS: dict[str, tuple[float, float]] = {
     "reaction": (0.0, 1.0 / 3.0),
     "both": (0.5, 1.0 / 3.0),
 }
+#: Physically different forms of each effect (the first is the one the other studies
+#: draw; see :func:`_effect` for each form's settings and ``ewb_ident.rig`` for the
+#: physics): a rigid play or one with a centring spring, Dahl hysteresis that saturates
+#: within 20 um or slowly (60-150 um), a transport delay or a first-order lag, friction
+#: linear or exponential in speed, fade driven by pad energy or by a surface temperature
+#: that cools within a second, a constant or a drifting sensor zero, a current limit
+#: that clips or sets in gradually, Coulomb friction or Stribeck friction.
+FORMS: dict[str, tuple[str, ...]] = {
+    "backlash": ("rigid", "spring"),
+    "wedge_load_torque": tuple(WEDGE_FORMS),
+    "force_hysteresis": ("fast", "slow"),
+    "sensor_delay": ("transport", "lag"),
+    "friction_speed": ("linear", "exponential"),
+    "friction_fade": ("energy", "surface"),
+    "sensor_offset": ("constant", "drift"),
+    "current_limit": ("clip", "soft"),
+    "stiction": ("coulomb", "stribeck"),
+}
 
 
-def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = False):
+def make_case(
+    i: int,
+    ids: tuple[str, ...],
+    seed: int = SEED,
+    widen: bool = False,
+    forms: dict[str, str] | None = None,
+):
     """The trace of case ``i`` with effects ``ids``, its truth and the effect's
     visibility (``seed``: the study's; other studies draw other cases).
 
     ``widen`` varies what real rigs vary besides: the pad radius (:data:`R_EFF_CHOICES`)
     and the current sensor (absent in :data:`NO_CURRENT_SHARE` of the cases), drawn from
-    a stream of their own so every other draw of case ``i`` is unchanged.
+    a stream of their own so every other draw of case ``i`` is unchanged. ``forms``
+    chooses an effect's physical form (:data:`FORMS`; otherwise the first, or for the
+    wedge's load torque in a widened case a drawn one).
     """
     import dataclasses
 
@@ -219,7 +278,10 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = Fals
     if "current_limit" in ids:
         _, _, free = rig.simulate_rig(params, seed=i, return_clean=True, **kw)
         peak = float(np.max(np.abs(free.states["current_A"])))
-    effects = [_effect(rng, eid, form, peak) for eid in ids]
+    chosen = {eid: FORMS[eid][0] for eid in ids} | {"wedge_load_torque": form}
+    chosen |= forms or {}
+    rng_form = np.random.default_rng([seed, i, 3])
+    effects = [_effect(rng, eid, chosen[eid], peak, rng_form) for eid in ids]
     trace, truth, run = rig.simulate_rig(
         params, effects=effects, seed=i, name=f"case{i}", return_clean=True, **kw
     )
@@ -239,6 +301,8 @@ def make_case(i: int, ids: tuple[str, ...], seed: int = SEED, widen: bool = Fals
             trace = dataclasses.replace(trace, channels=chans)
         setting |= {"channels": "no current" if no_current else "all", "r_eff_m": params.r_eff_m}
         setting["form"] = form if "wedge_load_torque" in ids else ""
+    if forms:
+        setting["form"] = "+".join(chosen[eid] for eid in ids)
     return trace, effects, setting, visibility
 
 
@@ -256,12 +320,17 @@ def _channels(effect) -> tuple[str, ...]:
 
 
 def run_case(
-    i: int, kind: str, ids: tuple[str, ...], seed: int = SEED, widen: bool = False
+    i: int,
+    kind: str,
+    ids: tuple[str, ...],
+    seed: int = SEED,
+    widen: bool = False,
+    forms: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """Diagnose case ``i`` and score it against its truth."""
     from ewb_ident.diagnosis.diagnose import diagnose
 
-    trace, effects, setting, visibility = make_case(i, ids, seed=seed, widen=widen)
+    trace, effects, setting, visibility = make_case(i, ids, seed=seed, widen=widen, forms=forms)
     row: dict[str, Any] = {
         "case": i,
         "kind": kind,

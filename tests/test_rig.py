@@ -206,8 +206,8 @@ def test_trace_truth_and_sidecar():
     back = json.loads(text)
     assert back["params"] == dataclasses.asdict(P)
     assert back["effects"] == {
-        "backlash": {"beta_deg": 3.0, "initial_side": "release"},
-        "sensor_offset": {"channel": "force_N", "offset": 25.0},
+        "backlash": {"beta_deg": 3.0, "initial_side": "release", "spring_tau_s": 0.0},
+        "sensor_offset": {"channel": "force_N", "offset": 25.0, "drift_per_s": 0.0},
     }
     assert back["noise"]["force_N"] == 10.0
     assert back["seed"] == 0 and back["n_samples"] == trace.n
@@ -485,6 +485,81 @@ def test_friction_speed_mu_follows_disc_speed():
     np.testing.assert_allclose(trace["disc_speed_rad_s"][[0, -1]], [70.0, 30.0], atol=1e-9)
     with pytest.raises(RigError, match="friction_speed.*disc_speed_end_rad_s"):
         simulate_rig(P, effects=["friction_speed"])
+
+
+# --------------------------------------------------------------------------------------
+# Second physical forms of the effects (the diagnosis forms study draws them)
+# --------------------------------------------------------------------------------------
+
+
+def test_play_with_a_spring_pulls_the_wedge_back_inside_the_band():
+    beta, tau = 3.0, 0.05
+    eff = [Backlash(beta_deg=beta, spring_tau_s=tau)]
+    trace, _, clean = simulate_rig(sample_rate_hz=1000.0, effects=eff, noise=QUIET,
+                                   return_clean=True)  # fmt: skip
+    theta, thw = clean.states["theta_deg"], clean.states["theta_w_deg"]
+    assert np.all(np.abs(thw - theta) <= beta * (1 + 1e-12))
+    # Where the pinion rests, the gap to the wedge side decays as exp(-t / tau).
+    still = np.flatnonzero(np.abs(np.diff(theta)) < 1e-9)
+    k = still[-1] - 50
+    ratio = (thw[k + 50] - theta[k + 50]) / (thw[k] - theta[k])
+    assert ratio == pytest.approx(math.exp(-0.05 / tau), rel=1e-3)
+    # The rigid play leaves the wedge side where the pinion left it.
+    _, _, rigid = simulate_rig(sample_rate_hz=1000.0, effects=[Backlash(beta_deg=beta)],
+                               noise=QUIET, return_clean=True)  # fmt: skip
+    r = rigid.states["theta_w_deg"] - rigid.states["theta_deg"]
+    assert abs(r[k + 50] - r[k]) < 1e-9 and abs(r[k]) > 0.5
+
+
+def test_sensor_lag_is_a_first_order_filter():
+    tau = 0.02
+    eff = [SensorDelay("force_N", tau, kind="lag")]
+    _, clean = clean_run(sample_rate_hz=1000.0, effects=eff)
+    f_true, f_read = clean.states["force_N"], clean.trace["force_N"]
+    # The reading obeys tau dy/dt = u - y (centred differences on the 1 kHz samples).
+    dydt = np.gradient(f_read, 1e-3)
+    resid = tau * dydt - (f_true - f_read)
+    assert np.max(np.abs(resid[5:-5])) < 1e-3 * np.max(f_true)
+    with pytest.raises(RigError, match="not simulated on theta_deg"):
+        SensorDelay("theta_deg", tau, kind="lag")
+
+
+def test_exponential_friction_speed_law():
+    params = dataclasses.replace(P, disc_speed_rad_s=70.0, disc_speed_end_rad_s=30.0)
+    eff = [FrictionSpeed(-0.2, 50.0, law="exponential")]
+    _, _, clean = simulate_rig(params, profile="position", effects=eff, noise=QUIET,
+                               return_clean=True)  # fmt: skip
+    s = (clean.states["disc_speed_rad_s"] - 50.0) / 50.0
+    np.testing.assert_allclose(clean.states["mu"], P.mu * (1 - 0.2 * (1 - np.exp(-s))), rtol=1e-12)
+
+
+def test_drifting_sensor_zero():
+    trace, clean = clean_run(effects=[SensorOffset("torque_Nm", 1.0, drift_per_s=2.0)])
+    t = clean.trace.time_s
+    np.testing.assert_allclose(clean.trace["torque_Nm"] - clean.states["torque_Nm"], 1.0 + 2.0 * t)
+
+
+def test_soft_current_limit_stays_below_its_limit_and_acts_early():
+    _, soft = clean_run(sample_rate_hz=1000.0, effects=[CurrentLimit(2.0, kind="soft")])
+    _, hard = clean_run(sample_rate_hz=1000.0, effects=[CurrentLimit(2.0)])
+    i_soft, i_hard = np.abs(soft.states["current_A"]), np.abs(hard.states["current_A"])
+    assert 1.5 < np.max(i_soft) < 2.0 and np.max(i_hard) > 1.99
+    # Below the limit the clip does nothing; the soft limit already holds the current back.
+    _, plain = clean_run(sample_rate_hz=1000.0)
+    below = np.abs(plain.states["current_A"]) < 1.0
+    np.testing.assert_allclose(i_hard[below][:20], np.abs(plain.states["current_A"])[below][:20])
+    assert np.max(np.abs(i_soft[below] - np.abs(plain.states["current_A"])[below])) > 1e-3
+
+
+def test_stribeck_friction_slows_the_start_of_a_move():
+    volts = np.linspace(0.0, 1.5, 1001)
+    common = dict(profile="voltage", voltage_V=volts, sample_rate_hz=1000.0)
+    _, coulomb = clean_run(effects=[Stiction(0.02, 0.04)], **common)
+    _, stribeck = clean_run(effects=[Stiction(0.02, 0.04, stribeck_rad_s=2.0)], **common)
+    th_c, th_s = coulomb.states["theta_deg"], stribeck.states["theta_deg"]
+    start = int(np.argmax(th_c > 0))
+    np.testing.assert_array_equal(th_s[:start], 0.0)  # the same breakaway
+    assert 0 < th_s[-1] < th_c[-1]  # more friction while slow
 
 
 def test_coasting_disc_decelerates_by_torque_over_inertia():

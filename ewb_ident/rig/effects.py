@@ -42,14 +42,20 @@ class Backlash(RigEffect):
         Where the pinion starts in the play: ``"release"`` (``theta_w = theta0 + beta``,
         as after a release: the first apply crosses the whole band), ``"apply"``
         (``theta_w = theta0 - beta``) or ``"centre"`` (``theta_w = theta0``).
+    spring_tau_s
+        Second form, play with a spring: inside the dead band a centring spring (against
+        the wedge side's damping) pulls the wedge side back toward the pinion,
+        ``d theta_w/dt = (theta - theta_w) / spring_tau_s``, s. ``0`` (default): a rigid
+        play, the wedge side stays where the pinion left it.
     """
 
     id: ClassVar[str] = "backlash"
     beta_deg: float = 3.0
     initial_side: Literal["release", "apply", "centre"] = "release"
+    spring_tau_s: float = 0.0
 
     def __post_init__(self) -> None:
-        check_nonnegative("Backlash", beta_deg=self.beta_deg)
+        check_nonnegative("Backlash", beta_deg=self.beta_deg, spring_tau_s=self.spring_tau_s)
         if self.initial_side not in ("release", "apply", "centre"):
             raise RigError(
                 "Backlash: initial_side must be 'release', 'apply' or 'centre', "
@@ -135,40 +141,61 @@ class SensorDelay(RigEffect):
     channel
         One of :data:`DELAYABLE`.
     delay_s
-        Delay, s.
+        Delay (``kind="transport"``) or time constant (``kind="lag"``), s.
+    kind
+        ``"transport"``: a pure delay (a late time stamp, a buffered bus). ``"lag"``: a
+        first-order low-pass of time constant ``delay_s`` (an amplifier's or
+        anti-alias filter's bandwidth), applied to the channel's samples assuming the
+        signal is linear between them. Not for ``theta_deg`` (the controller reads it).
     """
 
     id: ClassVar[str] = "sensor_delay"
     channel: str = "force_N"
     delay_s: float = 0.015
+    kind: Literal["transport", "lag"] = "transport"
 
     def __post_init__(self) -> None:
         check_nonnegative("SensorDelay", delay_s=self.delay_s)
         if self.channel not in DELAYABLE:
             raise RigError(f"SensorDelay: channel must be one of {DELAYABLE}, got {self.channel!r}")
+        if self.kind not in ("transport", "lag"):
+            raise RigError(f"SensorDelay: kind must be 'transport' or 'lag', got {self.kind!r}")
+        if self.kind == "lag" and self.channel == "theta_deg":
+            raise RigError("SensorDelay: kind 'lag' is not simulated on theta_deg")
 
 
 @dataclass(frozen=True)
 class FrictionSpeed(RigEffect):
-    """Speed-dependent pad friction: ``mu = mu0 (1 + kappa (omega_d - omega_ref) / omega_ref)``.
+    """Speed-dependent pad friction, with ``s = (omega_d - omega_ref) / omega_ref``:
+    ``mu = mu0 (1 + kappa s)`` (``law="linear"``) or
+    ``mu = mu0 (1 + kappa (1 - exp(-s)))`` (``law="exponential"``: the same slope at
+    ``omega_ref``, curving toward a plateau above it and steepening below).
 
     Needs a disc speed that varies (a drag ramp or ``coast``).
 
     Parameters
     ----------
     kappa
-        Relative change of mu per relative change of disc speed, dimensionless.
+        Relative change of mu per relative change of disc speed at ``omega_ref``,
+        dimensionless.
     omega_ref_rad_s
         Disc speed at which ``mu = mu0``, rad/s.
+    law
+        ``"linear"`` or ``"exponential"``.
     """
 
     id: ClassVar[str] = "friction_speed"
     kappa: float = -0.15
     omega_ref_rad_s: float = 50.0
+    law: Literal["linear", "exponential"] = "linear"
 
     def __post_init__(self) -> None:
         check_finite("FrictionSpeed", kappa=self.kappa)
         check_positive("FrictionSpeed", omega_ref_rad_s=self.omega_ref_rad_s)
+        if self.law not in ("linear", "exponential"):
+            raise RigError(
+                f"FrictionSpeed: law must be 'linear' or 'exponential', got {self.law!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -205,22 +232,27 @@ class FrictionFade(RigEffect):
 
 @dataclass(frozen=True)
 class SensorOffset(RigEffect):
-    """A constant offset on the force or torque sensor (in the channel's unit).
+    """An offset on the force or torque sensor (in the channel's unit):
+    ``offset + drift_per_s t`` (t from the trace's start).
 
     Parameters
     ----------
     channel
         ``"force_N"`` or ``"torque_Nm"``.
     offset
-        Offset, N or N m.
+        Offset at the start, N or N m.
+    drift_per_s
+        Second form, a drifting zero (a strain-gauge bridge warming up): the offset's
+        rate, N/s or N m/s. ``0`` (default): a constant offset.
     """
 
     id: ClassVar[str] = "sensor_offset"
     channel: Literal["force_N", "torque_Nm"] = "force_N"
     offset: float = 40.0
+    drift_per_s: float = 0.0
 
     def __post_init__(self) -> None:
-        check_finite("SensorOffset", offset=self.offset)
+        check_finite("SensorOffset", offset=self.offset, drift_per_s=self.drift_per_s)
         if self.channel not in ("force_N", "torque_Nm"):
             raise RigError(
                 f"SensorOffset: channel must be 'force_N' or 'torque_Nm', got {self.channel!r}"
@@ -231,20 +263,27 @@ class SensorOffset(RigEffect):
 class CurrentLimit(RigEffect):
     """The driver limits the motor current to ``+-i_max_A``.
 
-    Applied voltage ``V_app = clip(V_cmd, kb omega - R i_max, kb omega + R i_max)``
-    (with ``|i| <= i_max`` this keeps it there); ``voltage_V`` logs ``V_cmd``.
+    ``kind="clip"``: applied voltage ``V_app = clip(V_cmd, kb omega - R i_max, kb omega +
+    R i_max)`` (with ``|i| <= i_max`` this keeps it there). ``kind="soft"``: a driver
+    whose limit sets in gradually, ``V_app = kb omega + R i_max tanh((V_cmd - kb omega) /
+    (R i_max))``. ``voltage_V`` logs ``V_cmd``.
 
     Parameters
     ----------
     i_max_A
         Current limit, A.
+    kind
+        ``"clip"`` or ``"soft"``.
     """
 
     id: ClassVar[str] = "current_limit"
     i_max_A: float = 2.0
+    kind: Literal["clip", "soft"] = "clip"
 
     def __post_init__(self) -> None:
         check_positive("CurrentLimit", i_max_A=self.i_max_A)
+        if self.kind not in ("clip", "soft"):
+            raise RigError(f"CurrentLimit: kind must be 'clip' or 'soft', got {self.kind!r}")
 
 
 @dataclass(frozen=True)
@@ -265,15 +304,25 @@ class Stiction(RigEffect):
         Static (breakaway) friction torque, N m (>= tau_c).
     band_rad_s
         Half width of the stick band, rad/s.
+    stribeck_rad_s
+        Second form, Stribeck friction: sliding friction that falls from ``tau_s`` to
+        ``tau_c`` with speed, ``tau_c + (tau_s - tau_c) exp(-(omega / stribeck_rad_s)^2)``,
+        rad/s. ``0`` (default): it drops to ``tau_c`` at once.
     """
 
     id: ClassVar[str] = "stiction"
     tau_c_Nm: float = 0.02
     tau_s_Nm: float = 0.03
     band_rad_s: float = 0.01
+    stribeck_rad_s: float = 0.0
 
     def __post_init__(self) -> None:
-        check_nonnegative("Stiction", tau_c_Nm=self.tau_c_Nm, tau_s_Nm=self.tau_s_Nm)
+        check_nonnegative(
+            "Stiction",
+            tau_c_Nm=self.tau_c_Nm,
+            tau_s_Nm=self.tau_s_Nm,
+            stribeck_rad_s=self.stribeck_rad_s,
+        )
         check_positive("Stiction", band_rad_s=self.band_rad_s)
         if self.tau_s_Nm < self.tau_c_Nm:
             raise RigError(

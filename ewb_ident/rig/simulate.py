@@ -53,12 +53,14 @@ class _Static:
     n_sub: int
     closed_loop: bool
     backlash: bool
+    backlash_spring: bool
     wedge_load: bool
     hysteresis: bool
-    friction_speed: bool
+    friction_speed: str | None
     fade: bool
-    current_limit: bool
+    current_limit: str | None
     stiction: bool
+    stribeck: bool
     coast: bool
     delay_channel: str | None
     delay_buffer: int
@@ -88,7 +90,8 @@ def _compiled(st: _Static):
         pushing = ((thw_old <= th_deg - beta) & (y[_W] > 0)) | (
             (thw_old >= th_deg + beta) & (y[_W] < 0)
         )
-        return thw, jnp.where(pushing, y[_W], 0.0)
+        free = (th_deg - thw) / (p["spring_tau"] * DEG) if st.backlash_spring else 0.0
+        return thw, jnp.where(pushing, y[_W], free)
 
     def observe(y, thw_old, p):
         thw, ww = wedge(y, thw_old, p)
@@ -96,8 +99,11 @@ def _compiled(st: _Static):
         f_bell = p["F_rt"] / (1.0 + jnp.abs((x - p["c"]) / p["a"]) ** (2.0 * p["b"]))
         force = f_bell * (1.0 + p["hyst_h"] * y[_Z]) if st.hysteresis else f_bell
         mu = p["mu"]
-        if st.friction_speed:
-            mu = mu * (1.0 + p["kappa"] * (y[_WD] - p["omega_ref"]) / p["omega_ref"])
+        if st.friction_speed is not None:
+            s_rel = (y[_WD] - p["omega_ref"]) / p["omega_ref"]
+            if st.friction_speed == "exponential":
+                s_rel = 1.0 - jnp.exp(-s_rel)
+            mu = mu * (1.0 + p["kappa"] * s_rel)
         if st.fade:
             mu = mu * (1.0 - p["phi"] * y[_HEAT])
         sliding = jnp.clip(y[_WD] / DISC_SLIP_RAD_S, -1.0, 1.0)
@@ -107,9 +113,12 @@ def _compiled(st: _Static):
     def rhs(y, volts, thw_old, p):
         o = observe(y, thw_old, p)
         i, w = y[_I], y[_W]
-        if st.current_limit:
+        if st.current_limit == "clip":
             lim = p["R"] * p["i_max"]
             volts = jnp.clip(volts, p["kb"] * w - lim, p["kb"] * w + lim)
+        elif st.current_limit == "soft":
+            lim = p["R"] * p["i_max"]
+            volts = p["kb"] * w + lim * jnp.tanh((volts - p["kb"] * w) / lim)
         di = (volts - p["R"] * i - p["kb"] * w) / p["L"]
         tau_ext = p["kT"] * i
         if st.wedge_load:
@@ -117,7 +126,10 @@ def _compiled(st: _Static):
             tau_ext = tau_ext - p["k_r"] * o["force"]
         if st.stiction:
             stick = jnp.clip(tau_ext + p["M"] * w / STICK_RELAX_S, -p["tau_s"], p["tau_s"])
-            tau_f = jnp.where(jnp.abs(w) < p["band"], stick, p["tau_c"] * jnp.sign(w))
+            slide = p["tau_c"]
+            if st.stribeck:
+                slide = slide + (p["tau_s"] - p["tau_c"]) * jnp.exp(-((w / p["stribeck"]) ** 2))
+            tau_f = jnp.where(jnp.abs(w) < p["band"], stick, slide * jnp.sign(w))
         else:
             tau_f = 0.0
         dw = (tau_ext - p["v"] * w - tau_f) / p["M"]
@@ -143,6 +155,8 @@ def _compiled(st: _Static):
         y = y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         if st.backlash:
             th_deg = y[_TH] * DEG
+            if st.backlash_spring:
+                thw = thw + (th_deg - thw) * p["spring_gain"]
             thw = jnp.clip(thw, th_deg - p["beta_deg"], th_deg + p["beta_deg"])
         return y, thw
 
@@ -387,12 +401,14 @@ def simulate_rig(
         n_sub=n_sub,
         closed_loop=closed_loop,
         backlash=Backlash.id in eff,
+        backlash_spring=Backlash.id in eff and eff[Backlash.id].spring_tau_s > 0,
         wedge_load=WedgeLoadTorque.id in eff,
         hysteresis=ForceHysteresis.id in eff,
-        friction_speed=FrictionSpeed.id in eff,
+        friction_speed=eff[FrictionSpeed.id].law if FrictionSpeed.id in eff else None,
         fade=FrictionFade.id in eff,
-        current_limit=CurrentLimit.id in eff,
+        current_limit=eff[CurrentLimit.id].kind if CurrentLimit.id in eff else None,
         stiction=Stiction.id in eff,
+        stribeck=Stiction.id in eff and eff[Stiction.id].stribeck_rad_s > 0,
         coast=params.disc_mode == "coast",
         delay_channel=delay_channel,
         delay_buffer=delay_buffer,
@@ -400,7 +416,7 @@ def simulate_rig(
     xs = _inputs(closed_loop, signal, unit_noise["theta_deg"], dt)
     y0 = np.array([0.0, 0.0, theta0_deg / DEG, z0, 0.0, params.disc_speed_rad_s])
     outs = _integrate(static, p, y0, thw0, xs)
-    clean, measured = _readings(outs, eff, noise, unit_noise, delay_channel)
+    clean, measured = _readings(outs, eff, noise, unit_noise, delay_channel, t)
 
     sidecar: dict[str, Any] = {
         "r_eff_m": params.r_eff_m,
@@ -497,6 +513,8 @@ def _step_params(params, noise, eff, h, dt, duration, theta0_deg, controller):
     if Backlash.id in eff:
         bl = eff[Backlash.id]
         p["beta_deg"] = bl.beta_deg
+        if bl.spring_tau_s > 0:
+            p.update(spring_tau=bl.spring_tau_s, spring_gain=-math.expm1(-h / bl.spring_tau_s))
         thw0 = theta0_deg + {"release": 1.0, "apply": -1.0, "centre": 0.0}[bl.initial_side] * (
             bl.beta_deg
         )
@@ -507,7 +525,7 @@ def _step_params(params, noise, eff, h, dt, duration, theta0_deg, controller):
         e = eff[ForceHysteresis.id]
         p.update(hyst_h=e.h, delta=e.delta_m)
         z0 = -1.0
-    if SensorDelay.id in eff:
+    if SensorDelay.id in eff and eff[SensorDelay.id].kind == "transport":
         e = eff[SensorDelay.id]
         steps = e.delay_s / h
         m = int(math.floor(steps + 1e-9))
@@ -525,6 +543,8 @@ def _step_params(params, noise, eff, h, dt, duration, theta0_deg, controller):
     if Stiction.id in eff:
         e = eff[Stiction.id]
         p.update(tau_c=e.tau_c_Nm, tau_s=e.tau_s_Nm, band=e.band_rad_s)
+        if e.stribeck_rad_s > 0:
+            p["stribeck"] = e.stribeck_rad_s
     if controller is not None:
         resolved = controller
         p.update(
@@ -572,7 +592,21 @@ def _integrate(static, p, y0, thw0, xs) -> dict[str, np.ndarray]:
     return {k: np.asarray(val, dtype=np.float64) for k, val in outs.items()}
 
 
-def _readings(outs, eff, noise, unit_noise, delay_channel):
+def _first_order_lag(u: np.ndarray, tau: float, dt: float) -> np.ndarray:
+    """``u`` through ``tau dy/dt = u - y`` (``y[0] = u[0]``), exact for a ``u`` linear
+    between samples."""
+    if tau <= 0:
+        return u.copy()
+    alpha = math.exp(-dt / tau)
+    gain = 1.0 - tau / dt * (1.0 - alpha)
+    y = np.empty_like(u)
+    y[0] = u[0]
+    for k in range(1, u.size):
+        y[k] = alpha * y[k - 1] + (1.0 - alpha) * u[k - 1] + gain * (u[k] - u[k - 1])
+    return y
+
+
+def _readings(outs, eff, noise, unit_noise, delay_channel, t):
     """The sensor readings: clean (sensor effects included) and measured (noise and
     quantisation added; the angle as the controller saw it)."""
     # Sensor readings without noise (sensor effects included).
@@ -587,9 +621,12 @@ def _readings(outs, eff, noise, unit_noise, delay_channel):
     }
     if delay_channel is not None:
         clean[delay_channel] = outs["delayed"]
+    if SensorDelay.id in eff and eff[SensorDelay.id].kind == "lag":
+        e = eff[SensorDelay.id]
+        clean[e.channel] = _first_order_lag(clean[e.channel], e.delay_s, float(t[1] - t[0]))
     if SensorOffset.id in eff:
         e = eff[SensorOffset.id]
-        clean[e.channel] = clean[e.channel] + e.offset
+        clean[e.channel] = clean[e.channel] + e.offset + e.drift_per_s * t
 
     measured = dict(clean)
     for ch in SENSOR_CHANNELS:
