@@ -56,6 +56,7 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
     df["visibility"] = pd.to_numeric(df["visibility"])
     df["named"] = [t in str(f).split("+") for t, f in zip(df["truth"], df["found"], strict=True)]
     df["first"] = df["top1"] == df["truth"]
+    df["alone"] = df["first"] & (df["found"].fillna("") == df["truth"])
 
     def pct(k: int, n: int) -> str:
         return f"{k}/{n} ({100 * k / n:.0f} %)" if n else "-"
@@ -69,11 +70,17 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
         "the first form of each id is the one the catalog mechanism models.",
         "",
         f"Named first: {pct(int(df['first'].sum()), len(df))}; named at all: "
-        f"{pct(int(df['named'].sum()), len(df))}.",
+        f"{pct(int(df['named'].sum()), len(df))}; named alone (nothing else, no "
+        f"unexplained remainder): {pct(int(df['alone'].sum()), len(df))}.",
         "",
-        "| effect | form | named first | named at all | without current: first "
-        "| visibility (median, min) | found instead |",
-        "|---|---|---|---|---|---|---|",
+        "*Named alone* is the stricter figure: the catalog mechanism absorbed the whole "
+        "effect. A mechanism that models one form of a family names the effect but can "
+        "leave a remainder the diagnosis reports as `unexplained_<stage>` (or as a second "
+        "catalog finding).",
+        "",
+        "| effect | form | named first | named alone | named at all | without current: "
+        "first | visibility (median, min) | found instead / beside |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for eid in da.IDS:
         for form in da.FORMS[eid]:
@@ -84,12 +91,13 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
             other = sorted(
                 {
                     str(f) or "nothing"
-                    for f, ok in zip(sel["found"], sel["first"], strict=True)
+                    for f, ok in zip(sel["found"].fillna(""), sel["alone"], strict=True)
                     if not ok
                 }
             )
             lines.append(
                 f"| {eid} | {form} | {pct(int(sel['first'].sum()), len(sel))} | "
+                f"{pct(int(sel['alone'].sum()), len(sel))} | "
                 f"{pct(int(sel['named'].sum()), len(sel))} | "
                 f"{pct(int(nc['first'].sum()), len(nc))} | "
                 f"{sel['visibility'].median():.1f}, {sel['visibility'].min():.1f} | "
@@ -100,8 +108,10 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
     alt = df[~df["form"].isin(first_forms)]
     lines += [
         "",
-        f"The catalog's own forms: named first {pct(int(base['first'].sum()), len(base))}; "
-        f"the other forms: {pct(int(alt['first'].sum()), len(alt))}.",
+        f"The catalog's own forms: named first {pct(int(base['first'].sum()), len(base))}, "
+        f"alone {pct(int(base['alone'].sum()), len(base))}; the other forms: named first "
+        f"{pct(int(alt['first'].sum()), len(alt))}, alone "
+        f"{pct(int(alt['alone'].sum()), len(alt))}.",
         "",
         "Cases not named first:",
         "",

@@ -59,8 +59,9 @@ def test_fit_with_the_planted_mechanism_recovers_the_truth(name, mechanism):
 
 
 def test_the_baseline_misses_what_the_corrected_model_recovers(tmp_path):
-    """The README's main job: hysteresis left out biases a, b, c far beyond their
-    standard errors; with it on, they come back."""
+    """The README's main job: hysteresis left out biases a, c far beyond their
+    white-residual standard errors (the robust ones widen to say the residual runs);
+    with it on, they come back."""
     out = runner.invoke(
         app,
         [
@@ -75,9 +76,10 @@ def test_the_baseline_misses_what_the_corrected_model_recovers(tmp_path):
     assert out.exit_code == 0, out.output
     doc = json.loads((tmp_path / "fit.json").read_text())
     truth = _truth("force_hysteresis")["params"]
-    base, se_base = doc["baseline"]["params"], doc["baseline"]["stderr"]
+    base, se_base = doc["baseline"]["params"], doc["baseline"]["stderr_white"]
     for p in ("a", "c"):
         assert abs(base[p] - truth[p]) > 5 * se_base[p]
+        assert doc["baseline"]["stderr"][p] > 2 * se_base[p]
         assert abs(doc["params"][p] - truth[p]) < 3 * doc["stderr"][p]
     assert doc["mechanisms"] == ["force_hysteresis"]
     assert abs(doc["params"]["force_hysteresis.h"] - 0.03) < 3 * doc["stderr"]["force_hysteresis.h"]

@@ -51,6 +51,8 @@ def corrected_record(trace: Trace, f0, f1, data, ev, notes) -> CorrectedFit:
         baseline_params=tables["baseline_params"],
         baseline_stderr=tables["baseline_stderr"],
         baseline_metrics=chain_metrics(trace, f0),
+        stderr_white=tables["augmented_stderr_white"],
+        baseline_stderr_white=tables["baseline_stderr_white"],
         converged=bool(f1.converged),
         delta_bic=float(ev["delta_bic"]),
         warnings=tuple(notes),
@@ -65,20 +67,23 @@ def model_tables(chain_fits: Sequence[AugFit], ok: bool) -> dict[str, dict]:
     if not ok or not chain_fits:
         return {}
 
-    def table(f: AugFit) -> tuple[dict[str, float], dict[str, float | None]]:
+    def table(f: AugFit):
         values = {k: float(v) for k, v in f.values.items()}
         for m in f.mechanisms:
             values |= {f"{m.variant}.{k}": float(v) for k, v in m.values().items()}
         stderr = {k: f.stderr.get(k) for k in values}
-        return values, stderr
+        white = {k: f.stderr_white.get(k) for k in values}
+        return values, stderr, white
 
-    bp, bs = table(chain_fits[0])
-    ap, as_ = table(chain_fits[-1])
+    bp, bs, bw = table(chain_fits[0])
+    ap, as_, aw = table(chain_fits[-1])
     return {
         "baseline_params": bp,
         "baseline_stderr": bs,
         "augmented_params": ap,
         "augmented_stderr": as_,
+        "baseline_stderr_white": bw,
+        "augmented_stderr_white": aw,
     }
 
 
@@ -98,7 +103,9 @@ class CorrectedFit:
     params, stderr
         Every fitted value (SI): the base parameters (a, b, c, mu, the motor, the gap
         polynomial, ``theta0_deg``) and each mechanism's as ``"variant.param"``; standard
-        errors (``None`` where not identified).
+        errors (``None`` where not identified), the larger of the white-residual and the
+        serial-correlation-robust one (``stderr_white``, ``baseline_stderr_white``: the
+        white ones).
     metrics, baseline_metrics
         Whole-chain metrics per recorded channel, corrected and baseline.
     baseline_params
@@ -125,12 +132,15 @@ class CorrectedFit:
     predictions: dict[str, np.ndarray] = field(repr=False)
     fit: AugFit | None = field(default=None, repr=False)
     data: dict[str, Any] | None = field(default=None, repr=False)
+    stderr_white: dict[str, float | None] = field(default_factory=dict)
+    baseline_stderr_white: dict[str, float | None] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A ``fit.json`` document (contract keys) for the corrected model."""
         return {
             "params": self.params,
             "stderr": self.stderr,
+            "stderr_white": self.stderr_white,
             "metrics": metrics_json(self.metrics),
             "converged": self.converged,
             "stage": "chain",
@@ -138,6 +148,7 @@ class CorrectedFit:
             "baseline": {
                 "params": self.baseline_params,
                 "stderr": self.baseline_stderr,
+                "stderr_white": self.baseline_stderr_white,
                 "metrics": metrics_json(self.baseline_metrics),
             },
             "evidence": {"delta_bic": self.delta_bic},

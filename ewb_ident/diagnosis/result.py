@@ -162,6 +162,8 @@ class DiagnosisResult:
     baseline_stderr: dict[str, float | None] = field(default_factory=dict)
     augmented_params: dict[str, float] = field(default_factory=dict)
     augmented_stderr: dict[str, float | None] = field(default_factory=dict)
+    baseline_stderr_white: dict[str, float | None] = field(default_factory=dict)
+    augmented_stderr_white: dict[str, float | None] = field(default_factory=dict)
     corrected: CorrectedFit | None = field(default=None, repr=False)
 
     def corrected_mechanisms(self) -> list[str]:
@@ -183,6 +185,7 @@ class DiagnosisResult:
                 "metrics": metrics_json(self.baseline_metrics),
                 "params": self.baseline_params,
                 "stderr": self.baseline_stderr,
+                "stderr_white": self.baseline_stderr_white,
                 "stage_metrics": {
                     s: metrics_json(m) for s, m in self.stage_metrics_before.items()
                 },
@@ -193,6 +196,7 @@ class DiagnosisResult:
                 "mechanisms": [f.effect for f in self.findings],
                 "params": self.augmented_params,
                 "stderr": self.augmented_stderr,
+                "stderr_white": self.augmented_stderr_white,
                 "params_note": (
                     "the whole chain refitted from the voltage with the findings on: the "
                     "corrected a, b, c, mu; mechanism parameters as 'variant.param'. Empty "

@@ -27,6 +27,7 @@ import numpy as np
 
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.solvers import Solution, Status, levenberg_marquardt
+from ewb_ident.inference.uncertainty import serial_variance
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
@@ -230,6 +231,7 @@ class AugFit:
     stderr
         Standard errors (SI) of the free base parameters (by name) and of the
         mechanisms' parameters (``"variant.param"``); ``None`` where not identified.
+        The larger of the white-residual and the serial-correlation-robust one.
     rss
         Sum of squared weighted residuals.
     n
@@ -247,6 +249,8 @@ class AugFit:
     u, problem
         The solver's unconstrained optimum and the residual function it minimised
         (a posterior starts from them).
+    stderr_white
+        The standard errors if the residuals were white, keyed as ``stderr``.
     """
 
     stages: tuple[str, ...]
@@ -262,10 +266,13 @@ class AugFit:
     residuals: dict[str, np.ndarray] = field(repr=False)
     u: np.ndarray = field(repr=False)
     problem: AugProblem = field(repr=False)
+    stderr_white: dict[str, float | None] = field(default_factory=dict, repr=False)
 
     def mechanism_stderr(self, m: AbstractMechanism) -> dict[str, float | None]:
-        """Standard errors of one fitted mechanism's parameters."""
-        return {i.name: self.stderr.get(f"{m.variant}.{i.name}") for i in m.param_info()}
+        """White-residual standard errors of one fitted mechanism's parameters: what the
+        diagnosis's tests (a finding's parameter resolved from no effect) were set on,
+        and what its words quote; the reported tables use :attr:`stderr`."""
+        return {i.name: self.stderr_white.get(f"{m.variant}.{i.name}") for i in m.param_info()}
 
 
 def fit_mechanisms(
@@ -336,7 +343,7 @@ def fit_mechanisms(
     combos = list(itertools.islice(itertools.product(*options), MAX_STARTS))
     us, group = [], []
     for g, b in enumerate(bases):
-        u_base = [float(PARAMS[n].to_unconstrained(b[n])) for n in problem.free]
+        u_base = [clipped_to_u(PARAMS[n], b[n]) for n in problem.free]
         for combo in combos:
             u = list(u_base)
             for m, vals in zip(mechs, combo, strict=True):
@@ -380,12 +387,20 @@ def fit_mechanisms(
 
 
 def clipped_to_u(info, value: float) -> float:
+    """A start value in ``u``, moved inside the bounds where the transform has none: a
+    log parameter is kept at or above ``ref * LOG_FLOOR`` (a fit that drove it to 0 in
+    floating point would otherwise start at ``u = -inf``, and one near it where the
+    parameter has no slope)."""
     if info.transform == "logit":
         lo, hi = info.lower, info.upper
         value = min(max(value, lo + 1e-6 * (hi - lo)), hi - 1e-6 * (hi - lo))
     if info.transform == "log":
-        value = max(value, 1e-300)
+        value = max(value, info.ref * LOG_FLOOR)
     return float(info.to_unconstrained(value))
+
+
+#: Smallest start of a log parameter, relative to its reference value.
+LOG_FLOOR = 1e-12
 
 
 def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
@@ -407,7 +422,7 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
         for info in tmpl.param_info():
             infos.append(info)
             names.append(f"{tmpl.variant}.{info.name}")
-    stderr = _stderr(J, rss, n_res, u_np, infos)
+    stderr, white = _stderr(J, r, n_res, u_np, infos, [(nch, r.size // nch)])
     p, theta0, mechs = problem.build(jnp.asarray(u), data)
     pred = {ch: np.asarray(v)[:n] for ch, v in pred_all.items()}
     values = {name: float(getattr(p, name)) for name in MODEL_PARAMS}
@@ -419,6 +434,7 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
         mechanisms=plain,
         values=values,
         stderr=dict(zip(names, stderr, strict=True)),
+        stderr_white=dict(zip(names, white, strict=True)),
         rss=rss,
         n=n_res,
         k=k,
@@ -431,16 +447,21 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
     )
 
 
-def _stderr(J: np.ndarray, rss: float, n: int, u: np.ndarray, infos) -> list[float | None]:
-    """Standard errors (SI) from the Jacobian, with the residual scale profiled."""
+def _stderr(
+    J: np.ndarray, r: np.ndarray, n: int, u: np.ndarray, infos, segments
+) -> tuple[list[float | None], list[float | None]]:
+    """Standard errors (SI) from the Jacobian, with the residual scale profiled: the
+    larger of the white and the serial-correlation-robust one, and the white one
+    (:mod:`ewb_ident.inference.uncertainty`). Columns without slope get none."""
     k = J.shape[1]
     if k == 0:
-        return []
+        return [], []
     scale = np.linalg.norm(J, axis=0)
     good = scale > 1e-12 * max(float(np.max(scale)), 1e-300)
     out: list[float | None] = [None] * k
+    white: list[float | None] = [None] * k
     if not np.any(good):
-        return out
+        return out, white
     Js = J[:, good] / scale[good]
     _, s, Vt = np.linalg.svd(Js, full_matrices=False)
     if s[-1] <= s[0] * 1e-10:
@@ -448,10 +469,14 @@ def _stderr(J: np.ndarray, rss: float, n: int, u: np.ndarray, infos) -> list[flo
         inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
     else:
         inv = (Vt.T / s**2) @ Vt
-    s2 = rss / max(n - k, 1)
-    cov = inv / np.outer(scale[good], scale[good]) * s2
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    dof = max(n - k, 1)
+    sd_white = np.sqrt(np.clip(np.diag(inv) * float(r @ r) / dof, 0.0, None))
+    robust = np.sqrt(np.clip(serial_variance(Js, r, inv, segments) * n / dof, 0.0, None))
+    sd = np.maximum(sd_white, robust) / scale[good]
+    sd_white = sd_white / scale[good]
     for j, idx in enumerate(np.flatnonzero(good)):
-        se = float(abs(infos[idx].dp_du(u[idx])) * sd[j])
-        out[idx] = se if np.isfinite(se) else None
-    return out
+        slope = abs(infos[idx].dp_du(u[idx]))
+        for dst, v in ((out, sd[j]), (white, sd_white[j])):
+            se = float(slope * v)
+            dst[idx] = se if np.isfinite(se) else None
+    return out, white

@@ -36,7 +36,9 @@ class FitResult:
         Start angle of each trace, degrees.
     stderr
         Standard error of each free shared parameter (SI units); for per-trace ones
-        ``"name[k]"`` keys. ``None`` where the Jacobian gives none.
+        ``"name[k]"`` keys. ``None`` where the Jacobian gives none. The larger of the
+        white-residual and the serial-correlation-robust one
+        (:mod:`ewb_ident.inference.uncertainty`).
     corr
         Correlation matrix of the free coordinates, ordered as ``corr_names``.
     condition_number
@@ -72,6 +74,9 @@ class FitResult:
         The residual function and its data (measured channels, weights ``sigma``,
         fixed values): ``problem(u, data)`` gives the weighted residuals and
         ``problem.predict(u, data)`` the model's channels. The posterior starts here.
+    stderr_white
+        The standard errors if the residuals were white (``s^2 (J^T J)^-1``), keyed as
+        ``stderr``: never larger than ``stderr``.
     """
 
     stage: str
@@ -99,6 +104,7 @@ class FitResult:
     u: np.ndarray = field(repr=False)
     problem: StageProblem = field(repr=False)
     data: dict = field(repr=False)
+    stderr_white: dict[str, float | None] = field(default_factory=dict, repr=False)
 
     @property
     def status(self) -> str:
@@ -141,6 +147,7 @@ class FitResult:
         doc = {
             "params": values,
             "stderr": stderr,
+            "stderr_white": {n: self.stderr_white.get(n, stderr[n]) for n in stderr},
             "metrics": self.metrics,
             "converged": self.converged,
             "acceptable": self.acceptable,
@@ -166,8 +173,9 @@ class FitResult:
             "seed_percent_error": SEED_PERCENT_ERROR,
             "warnings": list(self.warnings),
             "stderr_note": (
-                "null: parameter fixed, or not identified by the data (singular Jacobian), "
-                "or the model diverged (see warnings)"
+                "the larger of the white-residual standard error (stderr_white) and the "
+                "serial-correlation-robust one; null: parameter fixed, or not identified by "
+                "the data (singular Jacobian), or the model diverged (see warnings)"
             ),
         }
         return null_nonfinite(doc)

@@ -308,7 +308,12 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
     infos = [PARAMS[n] for n in problem.shared] + [
         PARAMS[n] for _ in traces for n in problem.per_trace
     ]
-    unc = parameter_uncertainty(J, r, u, infos)
+    segments = [
+        (len(chs), int(np.asarray(d[chs[0]]).shape[0]))
+        for d, chs in zip(data["traces"], problem.channels, strict=True)
+        if chs
+    ]
+    unc = parameter_uncertainty(J, r, u, infos, segments)
     stderr = dict(zip(names, unc.stderr, strict=True))
     if finite:
         notes += identifiability_notes(names, unc, stderr)
@@ -366,6 +371,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         u=u,
         problem=problem,
         data=data,
+        stderr_white=dict(zip(names, unc.stderr_white or unc.stderr, strict=True)),
     )
 
 

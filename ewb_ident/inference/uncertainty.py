@@ -4,6 +4,15 @@ Standard errors come from the Jacobian ``J`` of the weighted residuals at the op
 in the unconstrained coordinates ``u``: ``cov_u = s^2 (J^T J)^-1`` with ``s^2`` the
 residual variance per degree of freedom, then mapped to SI units by the delta method
 (``se_p = |dp/du| se_u``; the transforms act elementwise, so correlations carry over).
+
+That formula holds when the residuals are white. When the model leaves something out,
+or the noise is coloured, neighbouring residuals are correlated and it is too narrow:
+a residual that runs for 100 samples carries the information of far fewer. So each
+standard error is the larger of the white one and the serial-correlation-robust
+(Newey-West) one, ``cov_u = A^-1 S A^-1`` with ``A = J^T J`` and ``S`` the long-run
+covariance of the scores ``J_i r_i`` summed over the channels at each instant (Bartlett
+kernel, bandwidth by Andrews' AR(1) plug-in rule). On white residuals the two agree to
+within the estimator's own noise; the correlations reported are the white ones.
 """
 
 from __future__ import annotations
@@ -19,6 +28,8 @@ STRONG_CORRELATION = 0.99
 #: Above this standard error in the O(1) coordinate a parameter is poorly determined
 #: (for log-scaled parameters: a relative standard error above 30 %).
 POORLY_DETERMINED = 0.3
+#: The scores' lag-one autocorrelation is clipped here before it sets the bandwidth.
+RHO_MAX = 0.99
 
 
 @dataclass(frozen=True)
@@ -28,7 +39,8 @@ class Uncertainty:
     Attributes
     ----------
     stderr
-        Standard error of each parameter, SI units (None where the Jacobian is singular).
+        Standard error of each parameter, SI units (None where the Jacobian is singular):
+        the larger of the white-residual and the serial-correlation-robust one.
     corr
         Correlation matrix of the parameters.
     condition_number
@@ -41,9 +53,68 @@ class Uncertainty:
     corr: np.ndarray
     condition_number: float
     sd_u: np.ndarray
+    stderr_white: list[float | None] | None = None
 
 
-def parameter_uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) -> Uncertainty:
+def bandwidth(g: np.ndarray) -> int:
+    """Bartlett-kernel bandwidth for the score series ``g`` (n, p): Andrews' (1991)
+    plug-in rule with an AR(1) fitted to each column, ``1.1447 (alpha n)^(1/3)``."""
+    n = g.shape[0]
+    num = den = 0.0
+    for x in g.T:
+        v = float(x @ x)
+        if not v > 0:
+            continue
+        rho = float(np.clip((x[1:] @ x[:-1]) / v, -RHO_MAX, RHO_MAX))
+        s4 = ((1.0 - rho**2) * v / n) ** 2
+        num += 4.0 * rho**2 * s4 / ((1.0 - rho) ** 6 * (1.0 + rho) ** 2)
+        den += s4 / (1.0 - rho) ** 4
+    alpha = num / den if den > 0 else 0.0
+    return int(min(n - 1, np.ceil(1.1447 * (alpha * n) ** (1.0 / 3.0))))
+
+
+def long_run_covariance(g: np.ndarray, lags: int | None = None) -> np.ndarray:
+    """Newey-West estimate of ``sum_k E[g_t g_{t-k}^T]`` from the series ``g`` (n, p):
+    ``Gamma_0 + sum_{k=1..L} (1 - k/(L+1)) (Gamma_k + Gamma_k^T)`` with
+    ``Gamma_k = sum_t g_t g_{t-k}^T`` (a sum, not a mean) and ``L`` from
+    :func:`bandwidth` unless given. Positive semi-definite."""
+    n, p = g.shape
+    lags = bandwidth(g) if lags is None else int(lags)
+    if lags <= 0:
+        return g.T @ g
+    m = 1 << int(2 * n - 1).bit_length()
+    G = np.fft.rfft(g, m, axis=0)
+    # C[k, a, b] = sum_t g[t + k, a] g[t, b] (zero padding makes it linear, not circular).
+    C = np.fft.irfft(G[:, :, None] * np.conj(G[:, None, :]), m, axis=0)[: lags + 1]
+    w = 1.0 - np.arange(1, lags + 1) / (lags + 1.0)
+    side = np.einsum("k,kab->ab", w, C[1:])
+    return C[0] + side + side.T
+
+
+def serial_variance(Js: np.ndarray, r: np.ndarray, inv: np.ndarray, segments) -> np.ndarray:
+    """Diagonal of the sandwich ``inv S inv`` (the coordinates of ``Js``).
+
+    ``segments``: ``(n_channels, n_time)`` per block of rows, in order: a trace's
+    channels, each a time series of ``n_time`` samples. The scores are summed over the
+    channels at each instant (errors of one instant may be correlated across channels)
+    and ``S`` sums their :func:`long_run_covariance` over the blocks.
+    """
+    p = Js.shape[1]
+    meat = np.zeros((p, p))
+    row = 0
+    for nch, nt in segments:
+        size = int(nch) * int(nt)
+        g = (Js[row : row + size] * r[row : row + size, None]).reshape(nch, nt, p).sum(axis=0)
+        meat += long_run_covariance(g)
+        row += size
+    if row != Js.shape[0]:
+        raise ValueError(f"segments cover {row} rows, the Jacobian has {Js.shape[0]}")
+    return np.einsum("ij,jk,ki->i", inv, meat, inv)
+
+
+def parameter_uncertainty(
+    J: np.ndarray, r: np.ndarray, u: np.ndarray, infos, segments=None
+) -> Uncertainty:
     """Standard errors (SI), correlations and condition number from the Jacobian.
 
     Parameters
@@ -56,6 +127,9 @@ def parameter_uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) ->
         The optimum in unconstrained coordinates, shape (p,).
     infos
         The :class:`~ewb_ident.model.params.ParamInfo` of each coordinate.
+    segments
+        How the rows are laid out in time (see :func:`serial_variance`); without it the
+        standard errors are the white ones.
     """
     n, p = J.shape
     if p == 0:
@@ -73,14 +147,20 @@ def parameter_uncertainty(J: np.ndarray, r: np.ndarray, u: np.ndarray, infos) ->
     keep = s > s[0] * 1e-12
     inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
     cov_u = inv / np.outer(scale, scale) * float(r @ r) / max(n - p, 1)
-    sd_u = np.sqrt(np.clip(np.diag(cov_u), 0, None))
-    safe = np.where(sd_u > 0, sd_u, 1.0)
+    sd_white = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    safe = np.where(sd_white > 0, sd_white, 1.0)
     corr = cov_u / np.outer(safe, safe)
+    sd_u = sd_white
+    if segments is not None:
+        var = serial_variance(Js, r, inv, segments) * n / max(n - p, 1) / scale**2
+        sd_u = np.maximum(sd_white, np.sqrt(np.clip(var, 0, None)))
     stderr: list[float | None] = []
+    white: list[float | None] = []
     for j, info in enumerate(infos):
-        se = float(abs(info.dp_du(u[j])) * sd_u[j])
-        stderr.append(se if np.isfinite(se) and keep.all() else None)
-    return Uncertainty(stderr, corr, cond, np.where(keep.all(), sd_u, np.inf))
+        for out, sd in ((stderr, sd_u), (white, sd_white)):
+            se = float(abs(info.dp_du(u[j])) * sd[j])
+            out.append(se if np.isfinite(se) and keep.all() else None)
+    return Uncertainty(stderr, corr, cond, np.where(keep.all(), sd_u, np.inf), white)
 
 
 def identifiability_notes(names, unc: Uncertainty, stderr) -> list[str]:
