@@ -103,3 +103,21 @@ def test_without_current_the_motor_change_is_given_for_what_is_identified():
     assert "effective values" in result.summary()
     doc = result.to_json()
     assert doc["changes"]["motor_lag_s"]["stderr"] > 0
+
+
+def test_a_small_but_real_mu_change_is_not_shared_into_the_bell():
+    """Case 9 of the coverage study's seed 20261238 (independent rig, no current,
+    position control): mu changed by 0.8 % — under the 1 % practical tolerance, but by
+    30 standard errors. The joint refit shared it, so F_rt absorbed it: a change of
+    -34 N with a +-3 N interval, where F_rt did not change. Shared now only are
+    parameters whose change is consistent with none."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
+    import compare_coverage
+
+    rows = {r["param"]: r for r in compare_coverage.run_case(9, seed=20261238)}
+    assert rows["F_rt"]["true_delta"] == 0.0
+    for p in ("F_rt", "a", "b", "c", "mu"):
+        assert rows[p]["held"], (p, rows[p])
