@@ -278,8 +278,8 @@ def make_case(
     if "current_limit" in ids:
         _, _, free = rig.simulate_rig(params, seed=i, return_clean=True, **kw)
         peak = float(np.max(np.abs(free.states["current_A"])))
-    chosen = {eid: FORMS[eid][0] for eid in ids} | {"wedge_load_torque": form}
-    chosen |= forms or {}
+    defaults = {eid: form if eid == "wedge_load_torque" else FORMS[eid][0] for eid in ids}
+    chosen = defaults | (forms or {})
     rng_form = np.random.default_rng([seed, i, 3])
     effects = [_effect(rng, eid, chosen[eid], peak, rng_form) for eid in ids]
     trace, truth, run = rig.simulate_rig(

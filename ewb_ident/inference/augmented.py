@@ -27,7 +27,7 @@ import numpy as np
 
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.solvers import Solution, Status, levenberg_marquardt
-from ewb_ident.inference.uncertainty import serial_variance
+from ewb_ident.inference.uncertainty import serial_sd
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
@@ -471,8 +471,7 @@ def _stderr(
         inv = (Vt.T / s**2) @ Vt
     dof = max(n - k, 1)
     sd_white = np.sqrt(np.clip(np.diag(inv) * float(r @ r) / dof, 0.0, None))
-    robust = np.sqrt(np.clip(serial_variance(Js, r, inv, segments) * n / dof, 0.0, None))
-    sd = np.maximum(sd_white, robust) / scale[good]
+    sd = np.maximum(sd_white, serial_sd(Js, r, inv, segments, n, dof)) / scale[good]
     sd_white = sd_white / scale[good]
     for j, idx in enumerate(np.flatnonzero(good)):
         slope = abs(infos[idx].dp_du(u[idx]))

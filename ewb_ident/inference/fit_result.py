@@ -141,13 +141,17 @@ class FitResult:
                     "residual_sigma": self.sigma[k],
                 }
             )
-        stderr = {n: self.stderr.get(n) for n in values}
-        if len(self.params) == 1:
-            stderr |= {n: self.stderr.get(f"{n}[0]") for n in self.per_trace if n in values}
+        def keyed(errors: dict[str, float | None]) -> dict[str, float | None]:
+            out = {n: errors.get(n) for n in values}
+            if len(self.params) == 1:
+                out |= {n: errors.get(f"{n}[0]") for n in self.per_trace if n in values}
+            return out
+
+        stderr = keyed(self.stderr)
         doc = {
             "params": values,
             "stderr": stderr,
-            "stderr_white": {n: self.stderr_white.get(n, stderr[n]) for n in stderr},
+            "stderr_white": keyed(self.stderr_white),
             "metrics": self.metrics,
             "converged": self.converged,
             "acceptable": self.acceptable,

@@ -371,7 +371,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         u=u,
         problem=problem,
         data=data,
-        stderr_white=dict(zip(names, unc.stderr_white or unc.stderr, strict=True)),
+        stderr_white=dict(zip(names, unc.stderr_white, strict=True)),
     )
 
 

@@ -53,7 +53,7 @@ class Uncertainty:
     corr: np.ndarray
     condition_number: float
     sd_u: np.ndarray
-    stderr_white: list[float | None] | None = None
+    stderr_white: list[float | None]
 
 
 def bandwidth(g: np.ndarray) -> int:
@@ -112,6 +112,16 @@ def serial_variance(Js: np.ndarray, r: np.ndarray, inv: np.ndarray, segments) ->
     return np.einsum("ij,jk,ki->i", inv, meat, inv)
 
 
+def serial_sd(
+    Js: np.ndarray, r: np.ndarray, inv: np.ndarray, segments, n: int, dof: int
+) -> np.ndarray:
+    """Serial-correlation-robust standard deviations in the coordinates of ``Js``
+    (:func:`serial_variance`, with the white formula's small-sample factor ``n / dof``:
+    ``n`` residuals that count, ``dof`` their degrees of freedom)."""
+    var = serial_variance(Js, r, inv, segments) * n / dof
+    return np.sqrt(np.clip(var, 0.0, None))
+
+
 def parameter_uncertainty(
     J: np.ndarray, r: np.ndarray, u: np.ndarray, infos, segments=None
 ) -> Uncertainty:
@@ -133,11 +143,11 @@ def parameter_uncertainty(
     """
     n, p = J.shape
     if p == 0:
-        return Uncertainty([], np.zeros((0, 0)), 1.0, np.zeros(0))
+        return Uncertainty([], np.zeros((0, 0)), 1.0, np.zeros(0), [])
     if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
         # A model that diverged (e.g. the seed's Heun integrator at a long step): no
         # standard errors, and no correlations to report.
-        return Uncertainty([None] * p, np.eye(p), float("inf"), np.full(p, np.inf))
+        return Uncertainty([None] * p, np.eye(p), float("inf"), np.full(p, np.inf), [None] * p)
     scale = np.linalg.norm(J, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     Js = J / scale
@@ -152,8 +162,7 @@ def parameter_uncertainty(
     corr = cov_u / np.outer(safe, safe)
     sd_u = sd_white
     if segments is not None:
-        var = serial_variance(Js, r, inv, segments) * n / max(n - p, 1) / scale**2
-        sd_u = np.maximum(sd_white, np.sqrt(np.clip(var, 0, None)))
+        sd_u = np.maximum(sd_white, serial_sd(Js, r, inv, segments, n, max(n - p, 1)) / scale)
     stderr: list[float | None] = []
     white: list[float | None] = []
     for j, info in enumerate(infos):
