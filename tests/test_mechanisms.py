@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -190,6 +191,122 @@ def test_friction_fade_follows_the_dissipated_energy():
     ref = run.states["torque_Nm"]
     err = np.max(np.abs(np.asarray(pred["torque_Nm"])[: tr.n] - ref))
     assert err < 2e-3 * np.max(ref)  # rectangle rule for the energy against RK4
+
+
+# ------------------------------------------------------------------ flexible forms
+
+
+def test_each_flexible_form_gives_back_its_catalog_form_at_no_effect():
+    """A refinement carries the fitted values and adds parameters that, at no effect,
+    give back the catalog form: so the diagnosis's comparison of the two is nested."""
+    y = jnp.asarray(np.sin(np.linspace(0, 6, 400)) * 5.0)
+    ctx = {"dt": 0.005, "t": jnp.arange(400) * 0.005}
+    off = SensorOffset(channel="force_N", offset=7.0)
+    (drifting,) = off.refinements()
+    assert drifting.values() == {"offset": 7.0, "drift_per_s": 0.0}
+    np.testing.assert_array_equal(drifting.read("force_N", y, ctx), off.read("force_N", y, ctx))
+    bl = Backlash(beta_deg=2.0, side=0.5)
+    (sprung,) = bl.refinements()
+    np.testing.assert_allclose(
+        dataclasses.replace(sprung, relax_per_s=0.0).wedge_angle(y, ctx),
+        bl.wedge_angle(y, ctx),
+        atol=1e-12,
+    )
+    s = jnp.asarray([0.0, 40.0, 0.0])
+    lim = CurrentLimit(i_max_A=1.0)
+    (soft,) = lim.refinements()
+    sharp = dataclasses.replace(soft, softness=1e-3)
+    for V in (-12.0, -1.0, 0.3, 2.0, 12.0):
+        assert abs(float(sharp.voltage(V, s, BASE)) - float(lim.voltage(V, s, BASE))) < 1e-3
+    st = Stiction(tau_c_Nm=0.02)
+    (stribeck,) = st.refinements()
+    none = dataclasses.replace(stribeck, excess_Nm=0.0)
+    for w in (0.0, 0.5, 50.0):
+        sw = jnp.asarray([0.0, w, 0.0])
+        level = float(st.motor_friction(sw, BASE, 0.0)[0])
+        assert float(none.motor_friction(sw, BASE, 0.0, start=sw)[0]) == level
+    pairs = ((off, drifting), (bl, sprung), (lim, soft), (st, stribeck))
+    for catalog, flexible in pairs:
+        added = {i.name for i in flexible.param_info()} - {i.name for i in catalog.param_info()}
+        assert added and not flexible.refinements()  # one step wider, not a ladder
+
+
+def test_a_drifting_sensor_zero_is_read_and_removed():
+    m = SensorOffset(channel="torque_Nm", drift=True, offset=-2.0, drift_per_s=0.5)
+    t = jnp.arange(11) * 0.1
+    y = jnp.linspace(0.0, 5.0, 11)
+    ctx = {"t": t}
+    np.testing.assert_allclose(m.read("torque_Nm", y, ctx), np.asarray(y) - 2.0 + 0.5 * t)
+    np.testing.assert_allclose(m.unread("torque_Nm", m.read("torque_Nm", y, ctx), ctx), y)
+
+
+def test_sprung_play_reproduces_the_rig_wedge_angle():
+    eff = rig.Backlash(beta_deg=3.0, spring_tau_s=0.05)
+    _, run = clean(sample_rate_hz=1000.0, effects=[eff])
+    theta = jnp.asarray(run.states["theta_deg"])
+    m = Backlash(spring=True, beta_deg=3.0, side=1.0, relax_per_s=1.0 / 0.05)
+    w = np.asarray(m.wedge_angle(theta, {"dt": 0.001}))
+    rigid = np.asarray(Backlash(beta_deg=3.0, side=1.0).wedge_angle(theta, {"dt": 0.001}))
+    ref = run.states["theta_w_deg"]
+    assert np.max(np.abs(rigid - ref)) > 1.0  # the spring matters ...
+    assert np.max(np.abs(w - ref)) < 0.005  # ... and the flexible form follows it
+
+
+def test_cooling_fade_reproduces_the_rig_surface_temperature():
+    eff = rig.FrictionFade(phi_per_K=4e-3, heat_capacity_J_per_K=400.0, tau_thermal_s=0.5)
+    _, run = clean(effects=[eff], sample_rate_hz=1000.0)
+    tr = run.trace
+    d = data_for(tr)
+    m = FrictionFade(cooling=True, phi_per_J=4e-3 / 400.0, cool_per_s=2.0)
+    energy_form = FrictionFade(phi_per_J=4e-3 / 400.0)
+    pred, pred_e = (
+        np.asarray(predict("torque", BASE, jnp.asarray(0.0), (x,), d, 1)["torque_Nm"])[: tr.n]
+        for x in (m, energy_form)
+    )
+    ref = run.states["torque_Nm"]
+    assert np.max(np.abs(pred_e - ref)) > 0.02 * np.max(ref)  # cooling matters ...
+    assert np.max(np.abs(pred - ref)) < 2e-3 * np.max(ref)  # ... and is reproduced
+
+
+def test_soft_saturation_spans_a_clip_and_a_tanh_limiter():
+    from ewb_ident.mechanisms.current_limit import soft_saturation
+
+    u = jnp.linspace(-6.0, 6.0, 1201)
+    assert np.max(np.abs(soft_saturation(u, 0.02) - np.clip(u, -1, 1))) < 0.015
+    assert np.max(np.abs(soft_saturation(u, 0.36) - np.tanh(u))) < 0.025
+    grad = jax.grad(lambda k: jnp.sum(soft_saturation(u, k)))(0.05)
+    assert np.isfinite(grad)
+
+
+@pytest.mark.parametrize(
+    ("rig_effect", "mechanism", "catalog"),
+    [
+        (
+            rig.Stiction(tau_c_Nm=0.02, tau_s_Nm=0.04, stribeck_rad_s=2.0),
+            Stiction(stribeck=True, tau_c_Nm=0.02, excess_Nm=0.02, stribeck_rad_s=2.0),
+            Stiction(tau_c_Nm=0.02),
+        ),
+        (
+            rig.CurrentLimit(i_max_A=2.0, kind="soft"),
+            CurrentLimit(soft=True, i_max_A=2.0, softness=0.36),
+            CurrentLimit(i_max_A=2.0),
+        ),
+    ],
+    ids=["stribeck", "soft_current_limit"],
+)
+def test_flexible_motor_forms_follow_the_rig_motor_closer_than_the_catalog_form(
+    rig_effect, mechanism, catalog
+):
+    _, run = clean(sample_rate_hz=500.0, effects=[rig_effect], fine_step_s=2e-5)
+    tr = run.trace
+    V = jnp.asarray(tr["voltage_V"])
+
+    def err(m):
+        s = motor_states(BASE, V, tr.dt, 0.0, (m,), 4)
+        i = np.asarray(s[:, 0])
+        return np.sqrt(np.mean((i - run.states["current_A"]) ** 2))
+
+    assert err(mechanism) < 0.5 * err(catalog)
 
 
 # ------------------------------------------------------------------ motor mechanisms

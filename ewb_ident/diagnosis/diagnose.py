@@ -282,6 +282,17 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
                 results.append(tried)
         ok = [r for r in results if not r[0].rejected]
         best = min(ok, key=lambda r: r[0].delta_bic) if ok else None
+        # The chosen form's family: a flexible form in its place when the trace shows it
+        # (with nothing supported, the forms of those held back for a partial share).
+        for r in [best] if best is not None else _short(results):
+            wider = _refine(ses, r, work.selected, rnd, bic_threshold)
+            if wider is not None:
+                results[next(i for i, x in enumerate(results) if x is r)] = wider
+                why = f"its flexible form fits better (dBIC {wider[0].form_gain_bic:.1f})"
+                results.append((Candidate(**{**r[0].__dict__, "rejected": why}), *r[1:]))
+                work.notes.append(_refined_note(r, wider))
+        ok = [r for r in results if not r[0].rejected]
+        best = min(ok, key=lambda r: r[0].delta_bic) if ok else None
         work.last_round = results if best is None else []
         for r in results:
             sel = best is not None and r[0] is best[0]
@@ -351,6 +362,40 @@ def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
         rejected=reason,
     )
     return cand, f1, ev, mech
+
+
+def _short(results: list[_Tried]) -> list[_Tried]:
+    """Candidates held back only because they explain part of the excess."""
+    return [r for r in results if r[0].rejected.startswith("explains only")]
+
+
+def _refine(ses, tried: _Tried, selected, rnd, bic_threshold) -> _Tried | None:
+    """A flexible form of a tried mechanism
+    (:meth:`~ewb_ident.mechanisms.base.AbstractMechanism.refinements`) that the trace
+    supports over the form tried: judged as a mechanism on its own (against the stages
+    without it) and better than the form tried by ``dBIC <= -bic_threshold``, its added
+    parameters plausible and resolved. ``None`` when no form is."""
+    cand, f1, _, mech = tried
+    own = [c for st in ses.mechanism_stages(mech) for c in STAGE_OUTPUTS[st]]
+    best, best_bic = None, -bic_threshold
+    for form in mech.refinements():
+        got = _try(ses, form, selected, set(ses.mechanism_stages(form)), rnd, bic_threshold)
+        if got is None or got[0].rejected:
+            continue
+        gain = bic_evidence(got[1], f1, ses.sigma_tf, own)["delta_bic"]
+        if gain <= best_bic:
+            best, best_bic = got, gain
+    if best is None:
+        return None
+    return (Candidate(**{**best[0].__dict__, "form_gain_bic": best_bic}), *best[1:])
+
+
+def _refined_note(plain: _Tried, wider: _Tried) -> str:
+    added = sorted(set(wider[0].params) - set(plain[0].params))
+    return (
+        f"{wider[0].variant}: the flexible form (with {', '.join(added)}) fits better than "
+        f"the catalog's form (dBIC {wider[0].form_gain_bic:.1f} against it)"
+    )
 
 
 def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float) -> None:

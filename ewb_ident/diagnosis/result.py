@@ -41,6 +41,8 @@ class Candidate:
     stderr: dict[str, float | None]
     rejected: str
     selected: bool = False
+    #: For a flexible form of a catalog mechanism: its dBIC against the catalog's form.
+    form_gain_bic: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -56,6 +58,7 @@ class Candidate:
             "stderr": {k: json_number(v) for k, v in self.stderr.items()},
             "selected": self.selected,
             "rejected_because": self.rejected or None,
+            "form_delta_bic": json_number(self.form_gain_bic),
         }
 
 

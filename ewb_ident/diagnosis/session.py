@@ -126,7 +126,7 @@ class Session:
 
     def _facts(self) -> dict[str, Any]:
         tr = self.trace
-        ctx: dict[str, Any] = {"dt": tr.dt}
+        ctx: dict[str, Any] = {"dt": tr.dt, "duration_s": tr.n * tr.dt}
         if tr.has("voltage_V"):
             ctx["voltage_noise_V"] = noise_sigma(tr["voltage_V"])
         if tr.has("force_N"):

@@ -57,7 +57,8 @@ def variants() -> list[AbstractMechanism]:
 
 def mechanism_param(name: str) -> ParamInfo:
     """The declaration of a mechanism parameter named ``"variant.param"`` (e.g.
-    ``"backlash.beta_deg"``, ``"sensor_delay[force_N].delay_s"``).
+    ``"backlash.beta_deg"``, ``"sensor_delay[force_N].delay_s"``), of its catalog form or
+    of a flexible form (:meth:`~ewb_ident.mechanisms.base.AbstractMechanism.refinements`).
 
     Raises
     ------
@@ -67,7 +68,8 @@ def mechanism_param(name: str) -> ParamInfo:
     variant, _, param = name.rpartition(".")
     for m in variants():
         if m.variant == variant:
-            for info in m.param_info():
-                if info.name == param:
-                    return info
+            for form in (m, *m.refinements()):
+                for info in form.param_info():
+                    if info.name == param:
+                        return info
     raise KeyError(name)

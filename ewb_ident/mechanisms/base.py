@@ -22,9 +22,11 @@ Hooks
 -----
 ``voltage``               ``V_eff = voltage(V, s, p)``: the voltage the armature sees
                           (motor stage; ``s`` = (i, omega, theta[rad])).
-``motor_friction``        ``(T, eps) = motor_friction(s, p, force)``: a friction-like
-                          torque ``T tanh(omega / eps)`` that opposes motion (``T`` in
-                          N*m, ``eps`` in rad/s; motor stage; integrated implicitly).
+``motor_friction``        ``(T, eps) = motor_friction(s, p, force, start)``: a
+                          friction-like torque ``T tanh(omega / eps)`` that opposes
+                          motion (``T`` in N*m, ``eps`` in rad/s; motor stage; integrated
+                          implicitly; ``s`` the state after a sub-step's linear flow,
+                          ``start`` the state at its start).
 ``wedge_angle``           ``theta_w = wedge_angle(theta, ctx)``: the wedge-side angle
                           the gap polynomial sees (gap stage), a whole series.
 ``clamp_force``           ``F = clamp_force(x_drive, f_bell, ctx)``: the clamping force
@@ -113,6 +115,13 @@ class AbstractMechanism(eqx.Module):
         raise NotImplementedError
 
     @property
+    def may_be_null(self) -> tuple[str, ...]:
+        """Physical parameters this form may leave at no effect (a drifting zero that
+        starts at zero): checked against their plausibility bounds, not for being
+        resolved."""
+        return ()
+
+    @property
     def stage(self) -> str:
         """The link of the chain the mechanism acts on (motor, gap, force, torque)."""
         return self.STAGE
@@ -165,6 +174,16 @@ class AbstractMechanism(eqx.Module):
         """Starting values (SI) for a fit; several when the cost has several valleys."""
         return [{p.name: _ref(p) for p in self.param_info()}]
 
+    def refinements(self) -> tuple[AbstractMechanism, ...]:
+        """Flexible forms of this (fitted) mechanism: the same physics in a wider family
+        (a zero that drifts beside a constant offset, a limit that sets in gradually beside
+        a sharp one), each with this mechanism's values and its added parameters at
+        values that give back exactly this form, and :meth:`starts` for the added
+        parameters only. The diagnosis tries them once this form has been selected and
+        keeps one only on the evidence a mechanism needs (``dBIC``, resolved, plausible)
+        against this form; none (the default) when the form is already the family's."""
+        return ()
+
     def implausible_reason(
         self, values: Mapping[str, float], stderr: Mapping[str, float | None]
     ) -> str:
@@ -186,6 +205,8 @@ class AbstractMechanism(eqx.Module):
                     f"{info.name} = {v:.3g} {info.unit} is outside the plausible range "
                     f"({lo:.3g}, {hi:.3g}) {info.unit}"
                 )
+            if info.name in self.may_be_null:
+                continue
             se = stderr.get(info.name)
             if se is None or not np.isfinite(se):
                 return f"{info.name} is not resolved by the data (no standard error)"
@@ -232,7 +253,9 @@ class AbstractMechanism(eqx.Module):
         """Voltage the armature sees, V (``voltage`` hook)."""
         return V
 
-    def motor_friction(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray):
+    def motor_friction(
+        self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray, start: jnp.ndarray | None = None
+    ):
         """Friction torque level (N*m) and switching speed (rad/s) (``motor_friction``)."""
         return jnp.zeros_like(s[1]), jnp.ones_like(s[1])
 
@@ -292,3 +315,10 @@ def fmt_pm(value: float, se: float | None, digits: int = 2) -> str:
         dec = max(0, -exp)
         return f"{round(value, -exp):.{dec}f} ± {round(se, -exp):.{dec}f}"
     return f"{value:.3g} ± {se:.2g}"
+
+
+def fmt_rate(rate: float, se: float | None) -> str:
+    """A fitted rate (1/s) with its error, and the time constant it means, in words."""
+    tc = 1.0 / rate
+    shown = f"{tc * 1e3:.2g} ms" if tc < 0.1 else f"{tc:.2g} s"
+    return f"rate {fmt_pm(rate, se)} 1/s, a time constant of about {shown}"

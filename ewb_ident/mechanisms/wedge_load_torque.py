@@ -126,7 +126,9 @@ class WedgeLoadTorque(AbstractMechanism):
     def load_torque(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray) -> jnp.ndarray:
         return self.k_r * jnp.maximum(force, 0.0) + 0.0 * s[1]
 
-    def motor_friction(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray):
+    def motor_friction(
+        self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray, start: jnp.ndarray | None = None
+    ):
         tau = self.k_w * jnp.maximum(force, 0.0)
         return tau, jnp.asarray(self.omega0_rad_s) + 0.0 * tau
 

@@ -107,7 +107,7 @@ def motor_states(
             s1 = loaded(0.5 * (tau0 + tau1))
         if fric:
             force = force_of(s1[2])
-            terms = [m.motor_friction(s1, p, force) for m in fric]
+            terms = [m.motor_friction(s1, p, force, start=s) for m in fric]
             w = s1[1]
             k = h / p.M
             total = sum(t for t, _ in terms)
@@ -301,6 +301,7 @@ def _torque(F, p, mechanisms, d, ctx) -> jnp.ndarray:
         faded = torque
         for _ in range(2):
             power = faded * ctx["disc_speed"]
+            ctx["power_W"] = power
             ctx["energy_J"] = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power[:-1])]) * d["dt"]
             faded = torque
             for m in energy_mechs:
