@@ -1,12 +1,15 @@
 """Test configuration: float64 everywhere, as the CLI sets it at its entry point, and
-JAX's on-disk compilation cache in a folder that lives for one test session."""
+on-disk caches of compiled programs in a folder that lives for one test session."""
 
 import gc
+import os
 import shutil
 import tempfile
 
 import jax
 import pytest
+
+from ewb_ident.model import programs
 
 jax.config.update("jax_enable_x64", True)
 
@@ -19,10 +22,15 @@ def _session_compilation_cache():
     empty, so every session still compiles each program once and nothing carries over
     between sessions."""
     folder = tempfile.mkdtemp(prefix="ewb-ident-test-jax-")
-    jax.config.update("jax_compilation_cache_dir", folder)
+    # The package's programs (traced, lowered and compiled once per session), and JAX's
+    # cache for the rest (its XLA code only). Within one session the package's cache
+    # never misses where JAX's hits, so no program is taken from JAX's cache into it.
+    programs.set_cache_folder(os.path.join(folder, "programs"))
+    jax.config.update("jax_compilation_cache_dir", os.path.join(folder, "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     yield
     jax.config.update("jax_compilation_cache_dir", None)
+    programs.set_cache_folder(None)
     shutil.rmtree(folder, ignore_errors=True)
 
 
@@ -33,4 +41,5 @@ def _release_compiled_code():
     into the kernel's limit on memory maps (``vm.max_map_count``)."""
     yield
     jax.clear_caches()
+    programs.clear_memory()
     gc.collect()

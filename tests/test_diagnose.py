@@ -172,6 +172,22 @@ def test_after_augmentation_the_stage_fits_to_the_noise(effect):
     assert rms_before > rms_after
 
 
+def test_a_drifting_sensor_zero_is_named_alone_in_its_flexible_form():
+    """The catalog's constant offset names a drifting zero but leaves a remainder (it
+    was reported as ``unexplained_force``); its flexible form takes the whole effect,
+    recovers the drift, and the corrected chain reads the force to its noise."""
+    eff = rig.SensorOffset("force_N", 0.0, drift_per_s=-25.0)
+    trace, _ = rig.simulate_rig(P, effects=[eff], name="drift", **SETTINGS)
+    res = diagnose(trace)
+    assert [f.effect for f in res.findings] == ["sensor_offset"]
+    top = res.findings[0]
+    assert top.params["drift_per_s"] == pytest.approx(-25.0, rel=0.1)
+    assert top.units["drift_per_s"] == "N/s" and "drifts" in top.explanation
+    assert any("flexible form" in n for n in res.notes)
+    rms = float(np.sqrt(np.mean((res.chain_after["force_N"] - trace["force_N"]) ** 2)))
+    assert rms < 1.3 * rig.SensorNoise().sigma("force_N")
+
+
 def test_the_words_name_stage_phase_parameter_and_improvement():
     _, res = case("force_hysteresis")
     text = res.findings[0].explanation

@@ -26,7 +26,26 @@ from ewb_ident.cli import diagnose, compare, validate  # noqa: F401
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
+    verbose: Annotated[
+        bool,
+        typer.Option(
+            "--verbose",
+            help="At the end, print to stderr how many compiled programs were reused "
+            "(from memory or the on-disk cache) and how many were compiled.",
+        ),
+    ] = False,
 ) -> None:
+    if verbose:
+        import atexit
+
+        from ewb_ident.model.programs import DISK_ERRORS, describe_stats
+
+        def report() -> None:
+            sys.stderr.write(describe_stats() + "\n")
+            for err in DISK_ERRORS:
+                sys.stderr.write(f"  cache: {err}\n")
+
+        atexit.register(report)
     if version:
         from importlib.metadata import version as _v
 
@@ -61,11 +80,14 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    # Compiled XLA code is cached on disk, so a second run of a command skips compilation.
+    # Compiled programs are kept on disk, so a second run of a command neither traces nor
+    # compiles them (:mod:`ewb_ident.model.programs`; JAX's own cache stays off: an
+    # executable it loaded does not serialise whole into ours).
     xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    cache = os.environ.get("EWB_IDENT_CACHE", str(Path(xdg) / "ewb-ident" / "jax"))
+    cache = os.environ.get("EWB_IDENT_CACHE", str(Path(xdg) / "ewb-ident" / "programs"))
     if cache:
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        from ewb_ident.model.programs import set_cache_folder
+
+        set_cache_folder(cache)
     app()
 

@@ -37,7 +37,7 @@ from ewb_ident.inference.augmented import (
 from ewb_ident.inference.least_squares import fit as fit_stage
 from ewb_ident.inference.problem import default_free
 from ewb_ident.mechanisms import AbstractMechanism
-from ewb_ident.model.integrate import seed_motor_states
+from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
 from ewb_ident.model.physics import clamp_force
 
@@ -217,16 +217,13 @@ class Session:
     def base_fits_motor_theta(self, v: Mapping[str, float]) -> np.ndarray:
         """The motor stage's angle (degrees) from the logged voltage, baseline values."""
         p = EWBParams(**{k: v[k] for k in EWBParams().as_dict()})
-        states = seed_motor_states(
+        theta = motor_angle_rad(
             p,
             jnp.asarray(self.trace["voltage_V"]),
-            self.trace.dt,
-            v["theta0_deg"],
-            1,
-            "exponential",
-            None,
+            jnp.asarray(self.trace.dt),
+            jnp.asarray(float(v["theta0_deg"])),
         )
-        return np.asarray(states[:, 2]) * (180.0 / np.pi)
+        return np.asarray(theta) * (180.0 / np.pi)
 
     def _stage_sigma(self, v: Mapping[str, float]) -> dict[str, np.ndarray]:
         """Noise floor per sample of each teacher-forced stage's output."""

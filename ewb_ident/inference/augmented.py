@@ -31,6 +31,7 @@ from ewb_ident.inference.uncertainty import serial_sd
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
+from ewb_ident.model.programs import program
 
 #: Arrays are padded to a multiple of this many samples.
 PAD = 256
@@ -192,12 +193,12 @@ class AugProblem(eqx.Module):
         )
 
 
-@eqx.filter_jit
+@program
 def residuals(problem: AugProblem, u, data):
     return problem(u, data)
 
 
-@eqx.filter_jit
+@program
 def residuals_and_jacobian(problem: AugProblem, u, data):
     """Residuals, their Jacobian (forward mode) and the predictions, in one pass."""
 

@@ -16,6 +16,7 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import Prior, param_info
 from ewb_ident.inference.problem import StageProblem
 from ewb_ident.model.params import ParamInfo
+from ewb_ident.model.programs import program
 
 #: The parameters every summary reports (CONTRACTS.md).
 CONTRACT_PARAMS: tuple[str, ...] = ("a", "b", "c", "mu")
@@ -180,12 +181,12 @@ class _LogPost(eqx.Module):
         return jnp.concatenate(preds), jnp.concatenate(lls)
 
 
-@jax.jit
+@program
 def v_logp_q(lp: _LogPost, X):
     return jax.vmap(lp.with_q)(X)
 
 
-@jax.jit
+@program
 def v_predictive(lp: _LogPost, X, S):
     return jax.vmap(lp.predictive)(X, S)
 

@@ -22,6 +22,7 @@ from ewb_ident.inference.initial import motor_lag
 from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import predict
+from ewb_ident.model.programs import program
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 
@@ -176,7 +177,7 @@ class StageProblem(eqx.Module):
         return jnp.concatenate(res)
 
 
-@eqx.filter_jit
+@program
 def evaluate(problem: StageProblem, u, data):
     """Weighted residuals, predictions and the Jacobian at ``u``, in one compiled call."""
     return problem(u, data), problem.predict(u, data), jax.jacfwd(problem)(u, data)

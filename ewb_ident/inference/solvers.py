@@ -16,10 +16,11 @@ import enum
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+
+from ewb_ident.model.programs import program
 
 
 class Status(enum.Enum):
@@ -60,23 +61,27 @@ class Solution:
         return self.status is Status.SUCCESSFUL
 
 
-@eqx.filter_jit
+@program
 def _optimistix_solve(problem, u0, data, rtol, atol, max_steps):
+    """The solution, optimistix's result index and the steps taken."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    return optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
+    sol = optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
+    return sol.value, sol.result._value, sol.stats["num_steps"]
 
 
 def optimistix_lm(problem, u0, data, *, rtol: float, atol: float, max_steps: int) -> Solution:
     """Minimise ``sum(problem(u, data)^2)`` with optimistix's Levenberg-Marquardt."""
-    sol = _optimistix_solve(problem, u0, data, rtol, atol, max_steps)
-    code = optx.RESULTS[sol.result]
-    if code == optx.RESULTS[optx.RESULTS.successful]:
+    value, result, steps = _optimistix_solve(problem, u0, data, rtol, atol, max_steps)
+    result = int(result)
+    if result == int(optx.RESULTS.successful._value):
         status, detail = Status.SUCCESSFUL, ""
-    elif code == optx.RESULTS[optx.RESULTS.nonlinear_max_steps_reached]:
+    elif result == int(optx.RESULTS.nonlinear_max_steps_reached._value):
         status, detail = Status.MAX_STEPS, ""
     else:
-        status, detail = Status.FAILED, str(code)
-    return Solution(sol.value, None, status, int(sol.stats["num_steps"]), detail)
+        status = Status.FAILED
+        messages = optx.RESULTS._index_to_message
+        detail = messages[result] if 0 <= result < len(messages) else f"optimistix result {result}"
+    return Solution(value, None, status, int(steps), detail)
 
 
 def levenberg_marquardt(

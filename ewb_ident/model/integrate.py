@@ -39,6 +39,7 @@ from jax.typing import ArrayLike
 from ewb_ident.model.params import EWBParams
 from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
 from ewb_ident.model.precision import float64
+from ewb_ident.model.programs import program
 
 #: ``tau(state, params) -> N*m``: a load torque on the motor from the state (i, omega,
 #: theta [rad]). It must be a hashable, pure function (it is a static argument of jit).
@@ -212,6 +213,13 @@ def seed_motor_states(
 
     _, states = jax.lax.scan(step, s0, V)
     return states
+
+
+@program
+def motor_angle_rad(params: EWBParams, voltage_V, dt, theta0_deg) -> jnp.ndarray:
+    """Pinion angle (rad) at the sample times from the logged voltage (V, zero-order
+    hold, interval ``dt`` s), exact over each interval, from rest at ``theta0_deg``."""
+    return seed_motor_states(params, voltage_V, dt, theta0_deg, 1, "exponential", None)[:, 2]
 
 
 @float64

@@ -1,0 +1,283 @@
+"""Compiled programs, kept in memory and on disk, so a program is traced, lowered and
+compiled once per machine and not once per call, trace or run.
+
+:func:`program` wraps a pure function as ``equinox.filter_jit`` does: its array
+arguments (JAX or NumPy) are traced, everything else (Python numbers, strings, the
+static fields of modules such as a residual function's configuration) is fixed in the
+program. Each compiled program is kept under a key made of
+
+- the function's name;
+- the structure and values of the fixed arguments (``repr``);
+- the structure, shapes and dtypes of the traced arguments;
+- the JAX and jaxlib versions, the float precision, the backend; and
+- a digest of this package's source files (a changed model never loads old code).
+
+On a hit nothing is traced, lowered or compiled. JAX's own on-disk cache stores only
+XLA's compilation, after the tracing and lowering that dominate a diagnosis's programs
+(measured: 18.5 of 21 s of a diagnosis whose XLA code was all cached); this cache stores
+the executable (``jax.experimental.serialize_executable``) and skips all three.
+
+Where: in memory (the last :data:`MAX_IN_MEMORY` programs), and on disk in the folder
+given to :func:`set_cache_folder` (the CLI gives ``$XDG_CACHE_HOME/ewb-ident/programs``,
+or ``$EWB_IDENT_CACHE``; see the README), capped at :data:`MAX_DISK_BYTES` (least
+recently used files go first). :data:`STATS` counts hits and compilations (shown by
+``ewb-ident --verbose``). A stored program is checked on its first run in a process and
+compiled afresh if it fails. JAX's own on-disk cache must not hold these programs: an
+executable it loaded from there serialises without its compiled kernels.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import os
+import pickle
+import tempfile
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+
+#: Programs kept in memory (least recently used dropped first).
+MAX_IN_MEMORY = 256
+#: Largest total size of the on-disk programs, bytes.
+MAX_DISK_BYTES = 2 * 1024**3
+#: Hits in memory, hits on disk, compilations, and failed disk reads or writes.
+STATS: dict[str, int] = {"memory": 0, "disk": 0, "compiled": 0, "disk_errors": 0}
+
+#: The on-disk folder's size is checked after every this many programs written.
+TRIM_EVERY = 32
+
+_MEMORY: OrderedDict[str, Any] = OrderedDict()
+_STORES = [0]
+
+
+def program(fun: Callable) -> Callable:
+    """``fun`` compiled per fixed configuration and argument shapes, and kept (see the
+    module docstring). The outputs must be arrays in lists, tuples and dicts. Called
+    while another program is traced, ``fun`` is traced into it."""
+    name = f"{fun.__module__}.{fun.__qualname__}"
+
+    @functools.wraps(fun)
+    def call(*args):
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return fun(*args)  # called inside another program: part of it
+        key = _key(name, static, treedef, leaves)
+
+        def compiled():
+            # A flat list in, so the stored program's input structure holds no module
+            # (a module's structure does not rebuild from placeholders).
+            def traced(flat):
+                return fun(*eqx.combine(jax.tree_util.tree_unflatten(treedef, flat), static))
+
+            exe = jax.jit(traced).lower(leaves).compile()
+            STATS["compiled"] += 1
+            _store(key, exe)
+            return exe
+
+        exe = _MEMORY.get(key)
+        loaded = False
+        if exe is not None:
+            _MEMORY.move_to_end(key)
+            STATS["memory"] += 1
+        else:
+            exe = _load(key)
+            loaded = exe is not None
+            exe = exe if loaded else compiled()
+            _remember(key, exe)
+        out = exe(leaves)
+        if loaded:
+            # A stored program is checked on its first run: one that fails (a file from
+            # another build of jaxlib, say) is compiled afresh.
+            try:
+                jax.block_until_ready(out)
+                STATS["disk"] += 1
+            except Exception as err:
+                _disk_error(f"{name}: stored program failed on its first run: {err}")
+                _forget(key)
+                exe = compiled()
+                _remember(key, exe)
+                out = exe(leaves)
+        return out
+
+    call.__wrapped__ = fun
+    return call
+
+
+#: The last few disk errors, in words (shown by ``--verbose``).
+DISK_ERRORS: list[str] = []
+
+
+def _disk_error(text: str) -> None:
+    STATS["disk_errors"] += 1
+    DISK_ERRORS.append(text.splitlines()[0][:300])
+    del DISK_ERRORS[:-5]
+
+
+def _remember(key: str, exe) -> None:
+    _MEMORY[key] = exe
+    while len(_MEMORY) > MAX_IN_MEMORY:
+        _MEMORY.popitem(last=False)
+
+
+def _forget(key: str) -> None:
+    _MEMORY.pop(key, None)
+    folder = cache_folder()
+    if folder is not None:
+        with contextlib.suppress(OSError):
+            (folder / f"{key}.bin").unlink()
+
+
+def clear_memory() -> None:
+    """Drop the programs kept in memory (with ``jax.clear_caches()``, to release their
+    code: a long study compiles thousands)."""
+    _MEMORY.clear()
+
+
+_FOLDER: list[Path | None] = [None]
+
+
+def set_cache_folder(folder: str | os.PathLike | None) -> None:
+    """Keep compiled programs in ``folder`` across runs (``None``: in memory only)."""
+    _FOLDER[0] = Path(folder) if folder else None
+
+
+def cache_folder() -> Path | None:
+    """The folder of on-disk programs, or ``None`` (memory only)."""
+    return _FOLDER[0]
+
+
+def describe_stats() -> str:
+    """The cache's hits and compilations so far, in words (for ``--verbose``)."""
+    s = STATS
+    total = s["memory"] + s["disk"] + s["compiled"]
+    if not total:
+        return "compiled programs: none used"
+    hits = s["memory"] + s["disk"]
+    where = cache_folder()
+    return (
+        f"compiled programs: {total} calls, {hits} reused ({s['memory']} in memory, "
+        f"{s['disk']} from {where or 'disk'}), {s['compiled']} compiled"
+        + (f", {s['disk_errors']} disk errors" if s["disk_errors"] else "")
+    )
+
+
+# ----------------------------------------------------------------------------- keys
+
+
+@functools.cache
+def _source_digest() -> str:
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def _environment() -> str:
+    import jaxlib
+
+    return "|".join(
+        (
+            jax.__version__,
+            jaxlib.__version__,
+            str(jax.config.jax_enable_x64),
+            jax.default_backend(),
+            _source_digest(),
+        )
+    )
+
+
+def _key(name: str, static: Any, treedef: Any, leaves: list) -> str:
+    s_leaves, s_def = jax.tree_util.tree_flatten(static)
+    shapes = [(x.shape, str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
+    text = "\n".join(
+        (name, repr(s_def), repr(s_leaves), repr(treedef), repr(shapes), _environment())
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# ----------------------------------------------------------------------------- disk
+
+
+def _load(key: str):
+    folder = cache_folder()
+    if folder is None:
+        return None
+    path = folder / f"{key}.bin"
+    if not path.is_file():
+        return None
+    from jax.experimental import serialize_executable
+
+    _prime_linalg()
+    try:
+        blob, in_tree, out_tree = pickle.loads(path.read_bytes())
+        exe = serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
+        os.utime(path)  # recently used
+        return exe
+    except Exception as err:  # a damaged or foreign file: compile instead
+        _disk_error(f"loading {path.name}: {err}")
+        with contextlib.suppress(OSError):
+            path.unlink()
+        return None
+
+
+@functools.cache
+def _prime_linalg() -> None:
+    """Compile one small program of each LAPACK routine the solvers use: jaxlib sets up
+    its LAPACK kernels when it first compiles one, and a stored program that calls them
+    crashes the process if loaded before."""
+    import jax.numpy as jnp
+
+    def f(a, b):
+        q, r = jnp.linalg.qr(a)
+        return (
+            jnp.linalg.solve(a, b), q, r, jnp.linalg.cholesky(a), jnp.linalg.svd(a),
+            jnp.linalg.eigh(a), jax.scipy.linalg.lu_factor(a), jnp.linalg.lstsq(a, b)
+        )  # fmt: skip
+
+    a = jnp.eye(2) * 2.0
+    jax.jit(f).lower(a, jnp.ones(2)).compile()
+
+
+def _store(key: str, exe) -> None:
+    folder = cache_folder()
+    if folder is None:
+        return
+    from jax.experimental import serialize_executable
+
+    try:
+        data = pickle.dumps(serialize_executable.serialize(exe))
+        folder.mkdir(parents=True, exist_ok=True)
+        # Written whole, then renamed: a concurrent reader never sees half a file.
+        fd, tmp = tempfile.mkstemp(dir=folder, suffix=".part")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+            os.replace(tmp, folder / f"{key}.bin")
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        _STORES[0] += 1
+        if _STORES[0] % TRIM_EVERY == 0:
+            _trim(folder)
+    except Exception as err:  # a full disk or an executable that does not serialise
+        _disk_error(f"storing a program: {err}")
+
+
+def _trim(folder: Path) -> None:
+    files = [(p.stat().st_mtime, p.stat().st_size, p) for p in folder.glob("*.bin")]
+    total = sum(size for _, size, _ in files)
+    for _, size, path in sorted(files):
+        if total <= MAX_DISK_BYTES:
+            break
+        with contextlib.suppress(OSError):
+            path.unlink()
+            total -= size
