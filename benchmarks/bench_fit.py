@@ -8,8 +8,8 @@ standard errors, metrics) after one call that compiled it, against the peer
 (``scipy_peer.py``: LSODA + least_squares with finite differences) fitting the same 14
 parameters with the same weights from the seed values. Medians of repeated runs.
 Cold: whole commands in fresh processes, imports and compilation included —
-``ewb-ident fit`` with JAX's on-disk compilation cache empty, and again with it filled
-by the previous run — against ``python scipy_peer.py TRACE``.
+``ewb-ident fit`` with its on-disk cache of compiled programs empty, and again with it
+filled by the previous run — against ``python scipy_peer.py TRACE``.
 """
 
 from __future__ import annotations
@@ -67,11 +67,8 @@ def _run(cmd, env=None):
     return time.perf_counter() - t0
 
 
-def main(path: str) -> None:
-    trace = read_trace(path)
-    print(f"machine: {_machine()}")
-    print(f"trace: {path} ({trace.n} samples, {trace.sample_rate_hz:g} Hz, {trace.duration_s:g} s)")
-
+def _warm(trace):
+    """The warm fit's result and median time, and the peer's fit and median time."""
     ours = fit(trace)  # compiles
     assert ours.converged, ours.message
     warm_ours = _median_time(lambda: fit(trace), 7)
@@ -89,6 +86,20 @@ def main(path: str) -> None:
         )
 
     warm_peer = _median_time(run_peer, 3)
+    return ours, warm_ours, peer, warm_peer
+
+
+def warm_times(path: str) -> tuple[float, float]:
+    """Median warm whole-chain fit times (s) of ewb-ident and of the peer on ``path``."""
+    _, warm_ours, _, warm_peer = _warm(read_trace(path))
+    return warm_ours, warm_peer
+
+
+def main(path: str) -> None:
+    trace = read_trace(path)
+    print(f"machine: {_machine()}")
+    print(f"trace: {path} ({trace.n} samples, {trace.sample_rate_hz:g} Hz, {trace.duration_s:g} s)")
+    ours, warm_ours, peer, warm_peer = _warm(trace)
     ours_cost = float(np.sum(np.asarray(ours.problem(ours.u, ours.data)) ** 2) / 2)
     peer_cost = float(np.sum(peer["res"].fun ** 2) / 2)
     print("\nwarm fit (median)            ewb-ident    SciPy peer    ratio")
@@ -107,7 +118,7 @@ def main(path: str) -> None:
     cold_peer = _run([sys.executable, str(Path(__file__).parent / "scipy_peer.py"), path])
     print("\ncold command (fresh process, imports included)     time, s   peer/ours")
     for label, value in (
-        ("ewb-ident fit, empty compilation cache        ", cold_empty),
+        ("ewb-ident fit, empty program cache            ", cold_empty),
         ("ewb-ident fit, cache filled by the run above  ", cold_cached),
     ):
         print(f"  {label}   {value:7.2f}   {cold_peer / value:6.2f}x")

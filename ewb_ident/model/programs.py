@@ -34,6 +34,7 @@ import hashlib
 import os
 import pickle
 import tempfile
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -53,6 +54,7 @@ STATS: dict[str, int] = {"memory": 0, "disk": 0, "compiled": 0, "disk_errors": 0
 TRIM_EVERY = 32
 
 _MEMORY: OrderedDict[str, Any] = OrderedDict()
+_LOCK = threading.Lock()
 _STORES = [0]
 
 
@@ -81,12 +83,13 @@ def program(fun: Callable) -> Callable:
             _store(key, exe)
             return exe
 
-        exe = _MEMORY.get(key)
+        with _LOCK:  # the posterior's ensembles call programs from two threads
+            exe = _MEMORY.get(key)
+            if exe is not None:
+                _MEMORY.move_to_end(key)
+                STATS["memory"] += 1
         loaded = False
-        if exe is not None:
-            _MEMORY.move_to_end(key)
-            STATS["memory"] += 1
-        else:
+        if exe is None:
             exe = _load(key)
             loaded = exe is not None
             exe = exe if loaded else compiled()
@@ -121,13 +124,15 @@ def _disk_error(text: str) -> None:
 
 
 def _remember(key: str, exe) -> None:
-    _MEMORY[key] = exe
-    while len(_MEMORY) > MAX_IN_MEMORY:
-        _MEMORY.popitem(last=False)
+    with _LOCK:
+        _MEMORY[key] = exe
+        while len(_MEMORY) > MAX_IN_MEMORY:
+            _MEMORY.popitem(last=False)
 
 
 def _forget(key: str) -> None:
-    _MEMORY.pop(key, None)
+    with _LOCK:
+        _MEMORY.pop(key, None)
     folder = cache_folder()
     if folder is not None:
         with contextlib.suppress(OSError):
@@ -137,7 +142,8 @@ def _forget(key: str) -> None:
 def clear_memory() -> None:
     """Drop the programs kept in memory (with ``jax.clear_caches()``, to release their
     code: a long study compiles thousands)."""
-    _MEMORY.clear()
+    with _LOCK:
+        _MEMORY.clear()
 
 
 _FOLDER: list[Path | None] = [None]

@@ -1,0 +1,107 @@
+"""Benchmark: every row of issue 12's speed table, measured in one run on this machine.
+
+    python benchmarks/bench_speed.py [--out reports/bench_speed.md]
+
+Rows (each with its target):
+
+1. warm whole-chain fit against the SciPy peer in the same process
+   (``benchmarks/bench_fit.py``'s comparison: ``least_squares.fit`` after one compiling
+   call, against ``scipy_peer.py``'s LSODA + finite-difference least squares of the same
+   14 parameters and weights; medians);
+2. a cold ``ewb-ident fit`` (fresh process, empty program cache) against the peer's cold
+   command ``python scipy_peer.py``; 3. the same with the cache filled by row 2;
+4. ``ewb-ident diagnose`` of a 3 s trace at 200 Hz (the shipped concealed backlash) and
+   at 1 kHz (``datasets/position_1khz.csv``), cold and with the cache filled;
+5. the whole-chain posterior to ESS >= 1000 for a, b, c, mu (``ewb-ident sample
+   --min-ess 1000``), cold (fresh process, empty cache) and warm (the same command with
+   the cache filled);
+6. the default test suite is timed by CI (``bash .ci/run``), not here.
+
+Every command runs in a fresh process with ``EWB_IDENT_CACHE`` pointing at a temporary
+folder, so "cold" means an empty cache and "filled" means filled by the previous run.
+Run it with nothing else on the machine: the figures are wall times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+
+import bench_fit  # noqa: E402
+
+TRACE_FIT = ROOT / "datasets" / "steps_200hz.csv"
+TRACE_200 = ROOT / "datasets" / "concealed" / "backlash.csv"
+TRACE_1K = ROOT / "datasets" / "position_1khz.csv"
+
+
+def _command(args: list[str], cache: str) -> float:
+    """Wall time of one ``ewb-ident`` command in a fresh process, s."""
+    with tempfile.TemporaryDirectory() as out:
+        cmd = [sys.executable, "-m", "ewb_ident", *args, "--out", out]
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            cmd, capture_output=True, text=True, cwd=ROOT,
+            env=dict(os.environ, EWB_IDENT_CACHE=cache),
+        )  # fmt: skip
+        elapsed = time.perf_counter() - t0
+    if proc.returncode not in (0, 3):  # 3: converged to a poor fit is still a timing
+        raise SystemExit(f"{' '.join(args)} failed ({proc.returncode}): {proc.stderr[-500:]}")
+    return elapsed
+
+
+def _cold_and_filled(args: list[str]) -> tuple[float, float]:
+    with tempfile.TemporaryDirectory() as cache:
+        return _command(args, cache), _command(args, cache)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "reports" / "bench_speed.md")
+    args = ap.parse_args()
+    lines = [f"machine: {bench_fit._machine()}", ""]
+
+    def row(text: str) -> None:
+        print(text, flush=True)
+        lines.append(text)
+
+    row("| row | ewb-ident | peer | ratio or time | target | met |")
+    row("|---|---|---|---|---|---|")
+    warm_ours, warm_peer = bench_fit.warm_times(str(TRACE_FIT))
+    r = warm_peer / warm_ours
+    row(f"| warm whole-chain fit ({TRACE_FIT.name}) | {warm_ours:.3f} s | {warm_peer:.2f} s | "
+        f"{r:.0f}x | >= 300x | {'yes' if r >= 300 else 'no'} |")  # fmt: skip
+    cold_peer = bench_fit._run([sys.executable, str(Path(__file__).parent / "scipy_peer.py"),
+                                str(TRACE_FIT)])  # fmt: skip
+    cold, filled = _cold_and_filled(["fit", str(TRACE_FIT)])
+    for label, t, target in (("empty cache", cold, 10), ("cache filled", filled, 25)):
+        r = cold_peer / t
+        row(f"| cold `ewb-ident fit`, {label} | {t:.1f} s | {cold_peer:.1f} s | {r:.2f}x | "
+            f">= {target}x | {'yes' if r >= target else 'no'} |")  # fmt: skip
+    for trace, limit in ((TRACE_200, 15.0), (TRACE_1K, 30.0)):
+        cold, filled = _cold_and_filled(["diagnose", str(trace)])
+        row(f"| `ewb-ident diagnose` {trace.name}, cold | {cold:.1f} s | | | <= {limit:g} s | "
+            f"{'yes' if cold <= limit else 'no'} |")  # fmt: skip
+        row(f"| `ewb-ident diagnose` {trace.name}, cache filled | {filled:.1f} s | | | "
+            f"<= 5 s | {'yes' if filled <= 5 else 'no'} |")  # fmt: skip
+    cold, filled = _cold_and_filled(["sample", str(TRACE_FIT), "--min-ess", "1000",
+                                     "--no-progress"])  # fmt: skip
+    row(f"| posterior to ESS >= 1000, cold | {cold:.1f} s | | | <= 15 s | "
+        f"{'yes' if cold <= 15 else 'no'} |")  # fmt: skip
+    row(f"| posterior to ESS >= 1000, cache filled | {filled:.1f} s | | | <= 5 s | "
+        f"{'yes' if filled <= 5 else 'no'} |")  # fmt: skip
+    text = "# `python benchmarks/bench_speed.py`\n\n" + "\n".join(lines) + "\n"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""Compiled programs kept in memory and on disk (:mod:`ewb_ident.model.programs`)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ewb_ident.model import programs
+
+
+class _Scaled(eqx.Module):
+    factor: float = eqx.field(static=True)
+    offset: jnp.ndarray
+
+
+@programs.program
+def _apply(m: _Scaled, x, power):
+    return {"y": m.factor * jnp.sin(x) ** power + m.offset, "s": [jnp.sum(x)]}
+
+
+def _plain(m, x, power):
+    return {"y": m.factor * np.sin(x) ** power + np.asarray(m.offset), "s": [np.sum(x)]}
+
+
+@pytest.fixture
+def folder(tmp_path):
+    before = programs.cache_folder()
+    programs.set_cache_folder(tmp_path)
+    programs.clear_memory()
+    yield tmp_path
+    programs.clear_memory()
+    programs.set_cache_folder(before)
+
+
+def _counts():
+    return dict(programs.STATS)
+
+
+def test_a_program_is_compiled_once_then_reused_from_memory_and_from_disk(folder):
+    x = jnp.linspace(0.0, 1.0, 7)
+    m = _Scaled(2.0, jnp.asarray(0.5))
+    c0 = _counts()
+    first = _apply(m, x, 2)
+    np.testing.assert_allclose(first["y"], _plain(m, x, 2)["y"], rtol=1e-14)
+    again = _apply(m, x + 1.0, 2)  # new values, same program
+    np.testing.assert_allclose(again["y"], _plain(m, x + 1.0, 2)["y"], rtol=1e-14)
+    c1 = _counts()
+    assert c1["compiled"] - c0["compiled"] == 1 and c1["memory"] - c0["memory"] == 1
+    assert len(list(folder.glob("*.bin"))) == 1
+    programs.clear_memory()  # as a new process would start
+    loaded = _apply(m, x, 2)
+    c2 = _counts()
+    assert c2["disk"] - c1["disk"] == 1 and c2["compiled"] == c1["compiled"]
+    np.testing.assert_array_equal(loaded["y"], first["y"])
+    np.testing.assert_array_equal(loaded["s"][0], first["s"][0])
+
+
+def test_other_fixed_values_or_shapes_are_other_programs(folder):
+    x = jnp.linspace(0.0, 1.0, 7)
+    c0 = _counts()
+    a = _apply(_Scaled(2.0, jnp.asarray(0.0)), x, 2)
+    b = _apply(_Scaled(3.0, jnp.asarray(0.0)), x, 2)  # a static field differs
+    c = _apply(_Scaled(2.0, jnp.asarray(0.0)), x, 3)  # a Python argument differs
+    d = _apply(_Scaled(2.0, jnp.asarray(0.0)), jnp.linspace(0.0, 1.0, 9), 2)  # a shape
+    assert _counts()["compiled"] - c0["compiled"] == 4
+    np.testing.assert_allclose(b["y"], 1.5 * a["y"], rtol=1e-14)
+    np.testing.assert_allclose(c["y"], 2.0 * np.sin(np.asarray(x)) ** 3, rtol=1e-14)
+    assert d["y"].shape == (9,)
+
+
+def test_a_damaged_file_is_compiled_afresh(folder):
+    x = jnp.linspace(0.0, 1.0, 5)
+    m = _Scaled(2.0, jnp.asarray(0.5))
+    ref = _apply(m, x, 2)
+    (path,) = folder.glob("*.bin")
+    path.write_bytes(b"not a program")
+    programs.clear_memory()
+    c0 = _counts()
+    out = _apply(m, x, 2)
+    c1 = _counts()
+    assert c1["disk_errors"] - c0["disk_errors"] == 1 and c1["compiled"] - c0["compiled"] == 1
+    np.testing.assert_array_equal(out["y"], ref["y"])
+    assert path.stat().st_size > 100  # written again, whole
+
+
+def test_inside_another_program_it_is_traced_into_it(folder):
+    m = _Scaled(2.0, jnp.asarray(0.5))
+    outer = jax.jit(lambda x: _apply(m, x, 2)["y"].sum())
+    x = jnp.linspace(0.0, 1.0, 5)
+    assert float(outer(x)) == pytest.approx(float(np.sum(_plain(m, x, 2)["y"])), rel=1e-14)
+    g = jax.grad(lambda x: _apply(m, x, 2)["y"].sum())(x)
+    np.testing.assert_allclose(g, 2.0 * 2.0 * np.sin(x) * np.cos(x), rtol=1e-12)
+
+
+def test_without_a_folder_programs_stay_in_memory(tmp_path):
+    before = programs.cache_folder()
+    programs.set_cache_folder(None)
+    try:
+        programs.clear_memory()
+        out = _apply(_Scaled(1.0, jnp.asarray(0.0)), jnp.ones(3), 1)
+        np.testing.assert_allclose(out["y"], np.sin(1.0) * np.ones(3), rtol=1e-14)
+        assert programs.cache_folder() is None
+        assert not list(tmp_path.iterdir())
+    finally:
+        programs.set_cache_folder(before)
