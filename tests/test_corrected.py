@@ -90,6 +90,8 @@ def test_the_baseline_misses_what_the_corrected_model_recovers(tmp_path):
     [
         (["gremlins"], "not a catalog mechanism"),
         (["sensor_delay"], "say which channel"),
+        (["backlash:soft"], "has no form 'soft'; its flexible form is spring"),
+        (["force_hysteresis:slow"], "it has one form"),
     ],
 )
 def test_unknown_mechanisms_are_refused(names, message):

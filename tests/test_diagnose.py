@@ -21,9 +21,11 @@ from typer.testing import CliRunner
 
 from ewb_ident import rig
 from ewb_ident.cli import app
+from ewb_ident.cli.options import mechanism_option
 from ewb_ident.data.outputs import json_text
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.writers import write_trace
+from ewb_ident.diagnosis.corrected import fit_corrected
 from ewb_ident.diagnosis.diagnose import diagnose
 from ewb_ident.diagnosis.result import DiagnosisResult
 from ewb_ident.diagnosis.session import DiagnoseError
@@ -172,7 +174,7 @@ def test_after_augmentation_the_stage_fits_to_the_noise(effect):
     assert rms_before > rms_after
 
 
-def test_a_drifting_sensor_zero_is_named_alone_in_its_flexible_form():
+def test_a_drifting_sensor_zero_is_named_alone_in_its_flexible_form(tmp_path):
     """The catalog's constant offset names a drifting zero but leaves a remainder (it
     was reported as ``unexplained_force``); its flexible form takes the whole effect,
     recovers the drift, and the corrected chain reads the force to its noise."""
@@ -186,6 +188,15 @@ def test_a_drifting_sensor_zero_is_named_alone_in_its_flexible_form():
     assert any("flexible form" in n for n in res.notes)
     rms = float(np.sqrt(np.mean((res.chain_after["force_N"] - trace["force_N"]) ** 2)))
     assert rms < 1.3 * rig.SensorNoise().sigma("force_N")
+    # The form is written, and an earlier diagnosis brings it to a corrected fit.
+    doc = res.to_json()
+    assert doc["findings"][0]["form"] == "drift"
+    (tmp_path / "diagnosis.json").write_text(json_text(doc))
+    names = mechanism_option(None, tmp_path)
+    assert names == ["sensor_offset[force_N]:drift"]
+    corrected = fit_corrected(trace, names)
+    drift = corrected.params["sensor_offset[force_N].drift_per_s"]
+    assert drift == pytest.approx(-25.0, rel=0.1)
 
 
 def test_the_words_name_stage_phase_parameter_and_improvement():

@@ -50,7 +50,8 @@ WithOption = Annotated[
     typer.Option(
         "--with",
         help="Catalog mechanisms to add to the chain, e.g. 'backlash' or "
-        "'force_hysteresis,sensor_delay[force_N]' (whole chain, one trace).",
+        "'force_hysteresis,sensor_delay[force_N]', a flexible form after a colon, e.g. "
+        "'backlash:spring' (whole chain, one trace).",
     ),
 ]
 WithDiagnosisOption = Annotated[
@@ -197,7 +198,11 @@ def mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str
         path = with_diagnosis / "diagnosis.json" if with_diagnosis.is_dir() else with_diagnosis
         try:
             doc = json.loads(path.read_text(encoding="utf-8"))
-            found = [f["mechanism"] for f in doc["findings"] if f.get("catalog", True)]
+            found = [
+                f["mechanism"] + (f":{f['form']}" if f.get("form") else "")
+                for f in doc["findings"]
+                if f.get("catalog", True)
+            ]
         except (OSError, ValueError, KeyError, TypeError) as err:
             fail(f"--with-diagnosis {with_diagnosis}: cannot read diagnosis.json ({err})")
         found = [m for m in found if not m.startswith("unexplained_")]

@@ -157,7 +157,8 @@ class CorrectedFit:
 
 
 def mechanism_templates(names: Sequence[str]) -> list[AbstractMechanism]:
-    """Mechanism instances for catalog ids or variants (``sensor_delay[force_N]``).
+    """Mechanism instances for catalog ids or variants (``sensor_delay[force_N]``), each
+    optionally in a flexible form after a colon (``backlash:spring``).
 
     Raises
     ------
@@ -167,9 +168,12 @@ def mechanism_templates(names: Sequence[str]) -> list[AbstractMechanism]:
     pool = {m.variant: m for m in variants()}
     out = []
     for name in names:
-        name = name.strip()
+        name, _, form = name.strip().partition(":")
         if name in pool:
-            out.append(pool[name])
+            try:
+                out.append(pool[name].in_form(form))
+            except ValueError as err:
+                raise DiagnoseError(f"--with {name}:{form}: {err}") from None
             continue
         options = [v for v in pool if v.startswith(name + "[")]
         if options:
@@ -215,7 +219,11 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
         if reason:
             raise DiagnoseError(f"--with {m.variant}: {reason}")
     stages = stage_order({s for m in templates for s in ses.mechanism_stages(m)})
-    f_tf = ses.fit(stages, templates)
+    # A flexible form starts from its catalog form's fit, as in the diagnosis.
+    f_tf = ses.fit(stages, [m.in_form("") for m in templates])
+    if any(m.form for m in templates):
+        flexible = [f.in_form(m.form) for f, m in zip(f_tf.mechanisms, templates, strict=True)]
+        f_tf = ses.fit(stages, flexible, explore=[bool(m.form) for m in templates])
     tf = list(f_tf.mechanisms)
     data, chain_free, sigma, f0 = chain_baseline(ses, notes)
     f1 = fit_mechanisms(

@@ -165,6 +165,7 @@ def make_finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx
         metrics_after=after,
         phases=phases,
         alternatives=tuple(alternatives),
+        form=mech.form,
     )
 
 

@@ -80,6 +80,9 @@ class Finding:
     depends_on: tuple[str, ...] = ()
     catalog: bool = True
     alternatives: tuple[tuple[str, float], ...] = ()
+    #: The mechanism's flexible form (``"drift"``, ``"spring"``, ...), ``""`` for the
+    #: catalog's form.
+    form: str = ""
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -96,6 +99,8 @@ class Finding:
             "phases": list(self.phases),
             "catalog": self.catalog,
         }
+        if self.form:
+            out["form"] = self.form
         if self.depends_on:
             out["depends_on"] = list(self.depends_on)
         out["alternatives"] = [

@@ -69,6 +69,8 @@ class Backlash(AbstractMechanism):
     physics: ClassVar[str] = "play in the worm gear between pinion and wedge"
     NUISANCE: ClassVar[tuple[str, ...]] = ("side",)
 
+    FORM: ClassVar[str] = "spring"
+
     spring: bool = eqx.field(static=True, default=False)
     beta_deg: ArrayLike = 1.0
     side: ArrayLike = 0.9

@@ -96,6 +96,9 @@ class AbstractMechanism(eqx.Module):
     NUISANCE: ClassVar[tuple[str, ...]] = ()
     #: Trace columns the mechanism needs beyond those of its stages.
     NEEDS: ClassVar[tuple[str, ...]] = ()
+    #: The static flag field that selects the mechanism's flexible form, named as the
+    #: form (e.g. ``"drift"``); ``""`` for a mechanism of one form.
+    FORM: ClassVar[str] = ""
     #: Tried at its stage even where the location test flags nothing: the mechanism
     #: modulates a gain the baseline refits (the friction coefficient), so the refitted
     #: gain absorbs most of it and the rest can stay under the location thresholds.
@@ -113,6 +116,34 @@ class AbstractMechanism(eqx.Module):
     def param_info(self) -> tuple[ParamInfo, ...]:
         """The parameters, in the order of the unconstrained vector."""
         raise NotImplementedError
+
+    @property
+    def form(self) -> str:
+        """The flexible form this instance is (:meth:`refinements`), ``""`` for the
+        catalog's form."""
+        return self.FORM if self.FORM and getattr(self, self.FORM) else ""
+
+    def in_form(self, form: str) -> AbstractMechanism:
+        """This mechanism in the named form (``""``: the catalog's), default values for
+        what the form adds.
+
+        Raises
+        ------
+        ValueError
+            The mechanism has no such form.
+        """
+        if form == self.form:
+            return self
+        if not form:
+            return type(self)(**dict(self.static_config()) | {self.FORM: False})
+        for r in self.refinements():
+            if r.form == form:
+                return r
+        known = [r.form for r in self.refinements()]
+        raise ValueError(
+            f"{self.variant} has no form {form!r}"
+            + (f"; its flexible form is {', '.join(known)}" if known else "; it has one form")
+        )
 
     @property
     def may_be_null(self) -> tuple[str, ...]:

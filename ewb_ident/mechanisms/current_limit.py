@@ -63,6 +63,8 @@ class CurrentLimit(AbstractMechanism):
     hook: ClassVar[str] = "voltage"
     physics: ClassVar[str] = "the motor driver limits the current, so motor torque saturates"
 
+    FORM: ClassVar[str] = "soft"
+
     soft: bool = eqx.field(static=True, default=False)
     i_max_A: ArrayLike = 2.0
     softness: ArrayLike = 0.0

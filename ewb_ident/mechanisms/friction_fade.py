@@ -77,6 +77,8 @@ class FrictionFade(AbstractMechanism):
     #: The factor uses the dissipated energy (computed from the other factors first).
     USES_ENERGY: ClassVar[bool] = True
 
+    FORM: ClassVar[str] = "cooling"
+
     cooling: bool = eqx.field(static=True, default=False)
     phi_per_J: ArrayLike = 1e-6
     cool_per_s: ArrayLike = 1.0

@@ -74,6 +74,8 @@ class SensorOffset(AbstractMechanism):
     physics: ClassVar[str] = "a constant offset on the force or torque sensor"
 
     channel: str = eqx.field(static=True, default="force_N")
+    FORM: ClassVar[str] = "drift"
+
     drift: bool = eqx.field(static=True, default=False)
     offset: ArrayLike = 0.0
     drift_per_s: ArrayLike = 0.0

@@ -82,6 +82,8 @@ class Stiction(AbstractMechanism):
 
     NUISANCE: ClassVar[tuple[str, ...]] = ("stribeck_rad_s",)
 
+    FORM: ClassVar[str] = "stribeck"
+
     stribeck: bool = eqx.field(static=True, default=False)
     tau_c_Nm: ArrayLike = 0.01
     excess_Nm: ArrayLike = 0.0
