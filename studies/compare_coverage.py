@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from other_rig import draw_rig, record  # noqa: E402
 
 from ewb_ident.data.outputs import write_text  # noqa: E402
+from ewb_ident.model import programs  # noqa: E402
 
 SEED = 20261128
 OUT = ROOT / "reports" / "compare_coverage"
@@ -90,7 +91,7 @@ def run_case(k: int, seed: int = SEED) -> list[dict]:
             "changed": true != 0.0, "flagged": bool(ch.changed), "fits_converged": ok,
             "seconds": seconds,
         })  # fmt: skip
-    jax.clear_caches()
+    programs.release()
     return rows
 
 

@@ -50,6 +50,7 @@ from ewb_ident.data.outputs import write_text  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.inference.least_squares import fit  # noqa: E402
+from ewb_ident.model import programs  # noqa: E402
 
 
 def _floor(truth: dict, ch: str) -> float:
@@ -139,7 +140,7 @@ def main() -> None:
             rows.append(row)
             # Each trace length compiles new programs; without this a long run exhausts
             # the process's memory maps (LLVM "Cannot allocate memory" after ~37 cases).
-            jax.clear_caches()
+            programs.release()
             print(
                 f"{name} {row['profile']:<12} {row['rate_hz']:5d} Hz miss={row['missing']:<28} "
                 f"c={'y' if row['passes_c'] else 'n'} {row['status']:<13} "

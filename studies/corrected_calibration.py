@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import diagnosis_accuracy as da  # noqa: E402
 
 from ewb_ident.data.outputs import write_text  # noqa: E402
+from ewb_ident.model import programs  # noqa: E402
 
 SEED = 20261125
 OUT = ROOT / "reports" / "corrected_calibration"
@@ -83,7 +84,7 @@ def run_case(i: int, eid: str, seed: int = SEED) -> dict:
         cw = res.augmented_stderr_white.get(p) if corrected else bw
         row[f"{p}_base_wz"] = (b - t) / bw if bw else None
         row[f"{p}_corr_wz"] = (c - t) / cw if (cw and c is not None) else None
-    jax.clear_caches()
+    programs.release()
     return row
 
 

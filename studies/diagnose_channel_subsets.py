@@ -23,6 +23,8 @@ from pathlib import Path
 import jax
 import pandas as pd
 
+from ewb_ident.model import programs
+
 ROOT = Path(__file__).resolve().parents[1]
 DROPS = ("current_A", "disc_speed_rad_s", "torque_Nm")
 
@@ -92,7 +94,7 @@ def main() -> None:
         print(f"{i:3d} {path.stem:<32} -{drop:<17} {row['status']:<6} "
               f"{row.get('verdict', '')} {row.get('found', '')} {row.get('seconds', '')}",
               flush=True)  # fmt: skip
-        jax.clear_caches()
+        programs.release()
     done = [json.loads(p.read_text()) for p in sorted((args.out / "cases").glob("*.json"))]
     if len(done) < len(todo):
         print(f"{len(done)}/{len(todo)} cases done; run the other shards, then merge")

@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.outputs import write_text
+from ewb_ident.model import programs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "diagnosis_accuracy"
@@ -625,7 +626,7 @@ def run(
             _append(path, run_case(i, kind, ids, seed=seed, widen=widen))
             # Every case compiles its own mechanism models (shapes and mechanisms differ):
             # drop them, or a long run exhausts the process's memory maps.
-            jax.clear_caches()
+            programs.release()
             gc.collect()
         if progress:
             progress(n + 1, len(todo))
@@ -637,7 +638,7 @@ def run(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--shard", default="0/1", help="K/N: run the cases with index % N == K")
+    ap.add_argument("--shard", default="0/1", help="K/N: run the cases with index %% N == K")
     ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--out", type=Path, default=OUT)

@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import diagnosis_accuracy as da  # noqa: E402
 
 from ewb_ident.data.outputs import write_text  # noqa: E402
+from ewb_ident.model import programs  # noqa: E402
 
 SEED = 20261236
 OUT = ROOT / "reports" / "diagnosis_forms"
@@ -143,7 +144,7 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--per-form", type=int, default=N_PER_FORM)
-    ap.add_argument("--shard", default="0/1", help="K/N: run the cases with index % N == K")
+    ap.add_argument("--shard", default="0/1", help="K/N: run the cases with index %% N == K")
     ap.add_argument("--seed", type=int, default=SEED)
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--report-only", action="store_true")
@@ -167,7 +168,7 @@ def main() -> None:
         for m, (i, eid, form) in enumerate(todo):
             row = da.run_case(i, "single", (eid,), seed=args.seed, widen=True, forms={eid: form})
             da._append(path, row)
-            jax.clear_caches()
+            programs.release()
             gc.collect()
             print(
                 f"{m + 1}/{len(todo)} case {i} {eid}:{form} -> {row.get('found') or '-'} "

@@ -154,6 +154,14 @@ def set_cache_folder(folder: str | os.PathLike | None) -> None:
     _FOLDER[0] = Path(folder) if folder else None
 
 
+def release() -> None:
+    """Release compiled code held in this process: JAX's caches and the programs kept in
+    memory (a long study compiles thousands and would exhaust the process's memory
+    maps). Programs on disk stay."""
+    jax.clear_caches()
+    clear_memory()
+
+
 def cache_folder() -> Path | None:
     """The folder of on-disk programs, or ``None`` (memory only)."""
     return _FOLDER[0]
