@@ -23,8 +23,9 @@ def _session_compilation_cache():
     between sessions."""
     folder = tempfile.mkdtemp(prefix="ewb-ident-test-jax-")
     # The package's programs (traced, lowered and compiled once per session), and JAX's
-    # cache for the rest (its XLA code only). Within one session the package's cache
-    # never misses where JAX's hits, so no program is taken from JAX's cache into it.
+    # cache for the rest (its XLA code only). A program of the package's compiled from
+    # JAX's cache (another key, the same code) does not serialise whole; it fails the
+    # check on its first load and is compiled afresh (ewb_ident.model.programs).
     programs.set_cache_folder(os.path.join(folder, "programs"))
     jax.config.update("jax_compilation_cache_dir", os.path.join(folder, "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

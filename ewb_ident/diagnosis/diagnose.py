@@ -280,8 +280,7 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
             tried = _try(ses, tmpl, work.selected, still, rnd, bic_threshold)
             if tried is not None:
                 results.append(tried)
-        ok = [r for r in results if not r[0].rejected]
-        best = min(ok, key=lambda r: r[0].delta_bic) if ok else None
+        _, best = _best(results)
         # The chosen form's family: a flexible form in its place when the trace shows it
         # (with nothing supported, the forms of those held back for a partial share).
         for r in [best] if best is not None else _short(results):
@@ -291,8 +290,7 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
                 why = f"its flexible form fits better (dBIC {wider[0].form_gain_bic:.1f})"
                 results.append((Candidate(**{**r[0].__dict__, "rejected": why}), *r[1:]))
                 work.notes.append(_refined_note(r, wider))
-        ok = [r for r in results if not r[0].rejected]
-        best = min(ok, key=lambda r: r[0].delta_bic) if ok else None
+        ok, best = _best(results)
         work.last_round = results if best is None else []
         for r in results:
             sel = best is not None and r[0] is best[0]
@@ -362,6 +360,12 @@ def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
         rejected=reason,
     )
     return cand, f1, ev, mech
+
+
+def _best(results: list[_Tried]) -> tuple[list[_Tried], _Tried | None]:
+    """The supported candidates, and the one with the lowest dBIC (``None``: none)."""
+    ok = [r for r in results if not r[0].rejected]
+    return ok, (min(ok, key=lambda r: r[0].delta_bic) if ok else None)
 
 
 def _short(results: list[_Tried]) -> list[_Tried]:

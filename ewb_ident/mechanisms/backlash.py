@@ -16,7 +16,6 @@ the play's limits; ``relax_per_s -> 0`` gives back the rigid play.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -79,10 +78,8 @@ class Backlash(AbstractMechanism):
     def param_info(self) -> tuple[ParamInfo, ...]:
         return (*_INFO, _SPRING) if self.spring else _INFO
 
-    def refinements(self) -> tuple[AbstractMechanism, ...]:
-        if self.spring:
-            return ()
-        return (dataclasses.replace(self, spring=True, relax_per_s=_SPRING.lower),)
+    def form_start(self) -> dict[str, float]:
+        return {"relax_per_s": _SPRING.lower}
 
     def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
         if self.spring:

@@ -208,12 +208,20 @@ class AbstractMechanism(eqx.Module):
     def refinements(self) -> tuple[AbstractMechanism, ...]:
         """Flexible forms of this (fitted) mechanism: the same physics in a wider family
         (a zero that drifts beside a constant offset, a limit that sets in gradually beside
-        a sharp one), each with this mechanism's values and its added parameters at
-        values that give back exactly this form, and :meth:`starts` for the added
-        parameters only. The diagnosis tries them once this form has been selected and
-        keeps one only on the evidence a mechanism needs (``dBIC``, resolved, plausible)
-        against this form; none (the default) when the form is already the family's."""
-        return ()
+        a sharp one). Each carries this mechanism's values, its added parameters at
+        :meth:`form_start` (at their no-effect values the form is exactly this one), and
+        its :meth:`starts` vary the added parameters. The diagnosis tries them once this
+        form has been selected and keeps one only on the evidence a mechanism needs
+        (``dBIC``, resolved, plausible) against this form; none for a mechanism of one
+        form (:attr:`FORM` empty) or one already in its flexible form."""
+        if not self.FORM or self.form:
+            return ()
+        return (dataclasses.replace(self, **{self.FORM: True}, **self.form_start()),)
+
+    def form_start(self) -> dict[str, float]:
+        """Start values of the parameters the flexible form adds, SI (see
+        :meth:`refinements`)."""
+        return {}
 
     def implausible_reason(
         self, values: Mapping[str, float], stderr: Mapping[str, float | None]

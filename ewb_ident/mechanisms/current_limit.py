@@ -13,7 +13,6 @@ Flexible form (:meth:`CurrentLimit.refinements`): a limit that sets in gradually
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -72,10 +71,8 @@ class CurrentLimit(AbstractMechanism):
     def param_info(self) -> tuple[ParamInfo, ...]:
         return (*_INFO, _SOFTNESS) if self.soft else _INFO
 
-    def refinements(self) -> tuple[AbstractMechanism, ...]:
-        if self.soft:
-            return ()
-        return (dataclasses.replace(self, soft=True, softness=0.3),)
+    def form_start(self) -> dict[str, float]:
+        return {"softness": 0.3}
 
     @property
     def channels(self) -> tuple[str, ...]:

@@ -16,7 +16,6 @@ draws away within ``1 / cool_per_s`` seconds, so mu recovers between application
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -86,10 +85,8 @@ class FrictionFade(AbstractMechanism):
     def param_info(self) -> tuple[ParamInfo, ...]:
         return (*_INFO, _COOLING) if self.cooling else _INFO
 
-    def refinements(self) -> tuple[AbstractMechanism, ...]:
-        if self.cooling:
-            return ()
-        return (dataclasses.replace(self, cooling=True, cool_per_s=_COOLING.lower),)
+    def form_start(self) -> dict[str, float]:
+        return {"cool_per_s": _COOLING.lower}
 
     def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
         if self.cooling:

@@ -9,7 +9,6 @@ from the trace's start).
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -121,10 +120,8 @@ class SensorOffset(AbstractMechanism):
             return [{"drift_per_s": 0.0}]
         return [{"offset": 0.0}]
 
-    def refinements(self) -> tuple[AbstractMechanism, ...]:
-        if self.drift:
-            return ()
-        return (dataclasses.replace(self, drift=True, drift_per_s=0.0),)
+    def form_start(self) -> dict[str, float]:
+        return {"drift_per_s": 0.0}
 
     def _error(self, ctx):
         if self.drift:

@@ -14,7 +14,6 @@ plus Coulomb friction. The Stribeck speed is a shape, not checked for plausibili
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -92,11 +91,8 @@ class Stiction(AbstractMechanism):
     def param_info(self) -> tuple[ParamInfo, ...]:
         return (*_INFO, *_STRIBECK) if self.stribeck else _INFO
 
-    def refinements(self) -> tuple[AbstractMechanism, ...]:
-        if self.stribeck:
-            return ()
-        tau = float(self.values()["tau_c_Nm"])
-        return (dataclasses.replace(self, stribeck=True, excess_Nm=0.3 * tau),)
+    def form_start(self) -> dict[str, float]:
+        return {"excess_Nm": 0.3 * float(self.values()["tau_c_Nm"])}
 
     @property
     def channels(self) -> tuple[str, ...]:

@@ -33,7 +33,6 @@ import functools
 import hashlib
 import os
 import pickle
-import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -267,18 +266,13 @@ def _store(key: str, exe) -> None:
         return
     from jax.experimental import serialize_executable
 
+    from ewb_ident.data.outputs import atomic_write
+
     try:
         data = pickle.dumps(serialize_executable.serialize(exe))
         folder.mkdir(parents=True, exist_ok=True)
         # Written whole, then renamed: a concurrent reader never sees half a file.
-        fd, tmp = tempfile.mkstemp(dir=folder, suffix=".part")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-            os.replace(tmp, folder / f"{key}.bin")
-        finally:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
+        atomic_write([(folder / f"{key}.bin", lambda tmp: tmp.write_bytes(data))])
         _STORES[0] += 1
         if _STORES[0] % TRIM_EVERY == 0:
             _trim(folder)
