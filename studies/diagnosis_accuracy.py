@@ -114,6 +114,8 @@ FIELDS = (
     "channels",
     "r_eff_m",
     "form",
+    "visibility_each",
+    "rivals",
 )
 
 
@@ -286,16 +288,21 @@ def make_case(
     trace, truth, run = rig.simulate_rig(
         params, effects=effects, seed=i, name=f"case{i}", return_clean=True, **kw
     )
-    visibility = 0.0
+    visibility, each = 0.0, []
     if effects:
         _, _, ref = rig.simulate_rig(params, seed=i, return_clean=True, **kw)
-        chans = {ch for e in effects for ch in _channels(e)}
-        visibility = max(
-            float(np.sqrt(np.mean((run.trace[ch] - ref.trace[ch]) ** 2)))
-            / max(noise.sigma(ch), 1e-12)
-            for ch in chans
-        )
+        visibility = _visibility(run, ref, effects, noise)
+        # Each effect's own: the change it makes beside the others (a pair's weaker
+        # effect may be invisible although the pair's visibility is high).
+        for k, e in enumerate(effects):
+            rest = effects[:k] + effects[k + 1 :]
+            if not rest:
+                each.append(visibility)
+                continue
+            _, _, without = rig.simulate_rig(params, effects=rest, seed=i, return_clean=True, **kw)
+            each.append(_visibility(run, without, [e], noise))
     setting = {"profile": profile, "sample_rate_hz": rate, "noise_factor": factor}
+    setting["visibility_each"] = ";".join(f"{v:.4g}" for v in each)
     if widen:
         if no_current:
             chans = {c: v for c, v in trace.channels.items() if c != "current_A"}
@@ -305,6 +312,16 @@ def make_case(
     if forms:
         setting["form"] = "+".join(chosen[eid] for eid in ids)
     return trace, effects, setting, visibility
+
+
+def _visibility(run, ref, effects, noise) -> float:
+    """RMS over the noise of the noise-free difference between two runs of the rig, on
+    the main channels of ``effects`` (the largest)."""
+    chans = {ch for e in effects for ch in _channels(e)}
+    return max(
+        float(np.sqrt(np.mean((run.trace[ch] - ref.trace[ch]) ** 2))) / max(noise.sigma(ch), 1e-12)
+        for ch in chans
+    )
 
 
 def _stages(effect) -> tuple[str, ...]:
@@ -357,6 +374,11 @@ def run_case(
     row["verdict"] = res.verdict
     row["found"] = "+".join(found)
     row["top1"] = found[0] if found else "none"
+    # The rivals each finding names as explaining its mismatch about as well (the trace
+    # cannot tell them apart): "finding:rival,rival;finding:...".
+    row["rivals"] = ";".join(
+        f"{f.effect}:{','.join(e for e, _ in f.alternatives)}" for f in res.findings
+    )
     row["located_stage"] = res.mismatches[0].stage if res.mismatches else ""
     if effects:
         allowed = {s for e in effects for s in _stages(e)}
@@ -417,6 +439,32 @@ def _listing(title: str, items: list[str], sep: str = "; ") -> list[str]:
     return ["", f"{title}: {sep.join(items)}."] if items else []
 
 
+def _rivals(cell: str) -> dict[str, set[str]]:
+    """The ``rivals`` cell as {finding: rivals the trace cannot tell from it}."""
+    out: dict[str, set[str]] = {}
+    for part in filter(None, (cell or "").split(";")):
+        f, _, alts = part.partition(":")
+        out[f] = set(filter(None, alts.split(",")))
+    return out
+
+
+def _first_or_tied(top1: str, rivals: str) -> set[str]:
+    """The effect named first and the rivals its finding says the trace cannot tell
+    from it."""
+    return {top1} | _rivals(rivals).get(top1, set())
+
+
+def _named_or_tied(found: str, rivals: str) -> set[str]:
+    """Every effect named, with the rivals of each finding."""
+    named = set(filter(None, (found or "").split("+")))
+    return named.union(*_rivals(rivals).values()) if named else named
+
+
+#: Visibility from which an effect counts as clearly visible in the pair breakdown (the
+#: edge of a bin of the single-effect table below, fixed before any widened seed ran).
+CLEAR_VISIBILITY = 3.0
+
+
 def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False) -> str:
     """The Markdown report of the study from its case table."""
     import pandas as pd
@@ -429,15 +477,25 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
     df["concealed"] = df["concealed"] == "True"
     df["location_ok"] = df["location_ok"] == "True"
     df["found"] = df["found"].fillna("")
-    ok = df[df["error"].fillna("") == ""]
-    single = ok[ok["kind"] == "single"]
-    clean = ok[ok["kind"] == "clean"]
-    pair = ok[ok["kind"] == "pair"]
+    for col in ("rivals", "visibility_each"):
+        df[col] = df[col].fillna("") if col in df else ""
 
     def pct(k: int, n: int) -> str:
         return f"{k}/{n} = {100 * k / n:.0f} %" if n else "no cases"
 
+    ok = df[df["error"].fillna("") == ""]
+    single = ok[ok["kind"] == "single"]
+    clean = ok[ok["kind"] == "clean"]
+    pair = ok[ok["kind"] == "pair"]
     top1 = int((single["top1"] == single["truth"]).sum())
+    tied = pd.Series(
+        [
+            t in _first_or_tied(f, r)
+            for t, f, r in zip(single["truth"], single["top1"], single["rivals"], strict=True)
+        ],
+        index=single.index,
+        dtype=bool,
+    )
     alarms = int((clean["verdict"] != "none").sum())
     named = pd.Series(
         [
@@ -448,6 +506,19 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
         dtype=bool,
     )
     both = int(named.sum())
+    named_tied = pd.Series(
+        [
+            set(t.split("+")) <= _named_or_tied(f, r)
+            for t, f, r in zip(pair["truth"], pair["found"], pair["rivals"], strict=True)
+        ],
+        index=pair.index,
+        dtype=bool,
+    )
+    each = [[float(v) for v in c.split(";")] if c else [] for c in pair["visibility_each"]]
+    clear = pd.Series(
+        [bool(v) and min(v) >= CLEAR_VISIBILITY for v in each], index=pair.index, dtype=bool
+    )
+    has_each = any(each)
     hit = single[single["top1"] == single["truth"]]
     rr = hit["residual_ratio"].dropna()
     within = int((rr <= 1.3).sum())
@@ -475,6 +546,19 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
         f"| top-1 on single catalog effects | {pct(top1, len(single))} | >= 90 % |",
         f"| false alarms on clean traces | {pct(alarms, len(clean))} | <= 5 % |",
         f"| both effects named, two-effect traces | {pct(both, len(pair))} | >= 80 % |",
+        f"| the same, counting a rival the finding names as undecided | "
+        f"{pct(int(named_tied.sum()), len(pair))} | |",
+        *(
+            [
+                f"| both named, two-effect traces where each effect is clearly visible "
+                f"(its own visibility >= {CLEAR_VISIBILITY:g}) | "
+                f"{pct(int(named[clear].sum()), int(clear.sum()))} | |"
+            ]
+            if has_each
+            else []
+        ),
+        f"| top-1, or the first finding names the truth as a rival it cannot rule out | "
+        f"{pct(int(tied.sum()), len(single))} | |",
         f"| located stage correct (traces with effects) | "
         f"{pct(int(loc['location_ok'].sum()), len(loc))} | |",
         f"| residual after augmentation <= 1.3x noise floor (correctly named single "
@@ -507,14 +591,18 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
                 f"{pct(int(named[pa.index].sum()), len(pa))} |"
             )
         lines += ["", "Top-1 per catalog id (target >= 80 % each):", ""]
-        lines += ["| effect | top-1 | with current | without current |", "|---|---|---|---|"]
+        lines += [
+            "| effect | top-1 | with current | without current | top-1 or an undecided "
+            "rival of it |",
+            "|---|---|---|---|---|",
+        ]
         for t in IDS:
             sel = single[single["truth"] == t]
             parts = [sel] + [sel[sel["channels"] == c] for c in ("all", "no current")]
             lines.append(
                 f"| {t} | "
                 + " | ".join(pct(int((x["top1"] == t).sum()), len(x)) for x in parts)
-                + " |"
+                + f" | {pct(int(tied[sel.index].sum()), len(sel))} |"
             )
         lines.append("")
     if "form" in df and df["form"].fillna("").ne("").any():
@@ -572,21 +660,32 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
     lines += _listing(
         "Two-effect traces where an effect was not named",
         [
-            f"case {c}: {t} -> {f or 'nothing'}"
-            for c, t, f in zip(missed["case"], missed["truth"], missed["found"], strict=True)
+            f"case {c}: {t} -> {f or 'nothing'}" + (f" (each effect's visibility {e})" if e else "")
+            for c, t, f, e in zip(
+                missed["case"],
+                missed["truth"],
+                missed["found"],
+                missed["visibility_each"].str.replace(";", ", "),
+                strict=True,
+            )
         ],
     )
     lines += _listing(
         "Single effects not named first",
         [
             f"case {c}: {t} ({p}, {r:g} Hz, visibility {v:.1f}) -> {f or 'nothing'}"
-            for c, t, p, r, v, f in zip(
+            + (f" (rivals it cannot rule out: {rv})" if rv else "")
+            for c, t, p, r, v, f, rv in zip(
                 wrong["case"],
                 wrong["truth"],
                 wrong["profile"],
                 pd.to_numeric(wrong["sample_rate_hz"]),
                 wrong["visibility"],
                 wrong["found"],
+                [
+                    ", ".join(sorted(_rivals(x).get(y, ())))
+                    for x, y in zip(wrong["rivals"], wrong["top1"], strict=True)
+                ],
                 strict=True,
             )
         ],
