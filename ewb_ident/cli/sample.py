@@ -60,7 +60,13 @@ def sample(
     noise: Annotated[
         str, typer.Option(help="auto (AR(1) where the residuals are correlated), white or ar1.")
     ] = "auto",
-    steps: Annotated[int, typer.Option(help="Steps per ensemble.")] = 2000,
+    steps: Annotated[
+        int,
+        typer.Option(
+            help="Steps per ensemble planned after 200 adaptation steps (stops earlier "
+            "once converged)."
+        ),
+    ] = 2000,
     max_steps: Annotated[
         int | None,
         typer.Option(help="Extend the run until converged or this many steps (default 10x)."),

@@ -15,14 +15,20 @@ from typing import Any
 import emcee
 import jax
 import numpy as np
+import scipy.linalg
 
 from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_PARAMS
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.log_posterior import (
+    ADAPT_STEPS,
     BURN_TAUS,
     CHUNK,
+    MAX_KEPT,
     POOR_FIT,
+    PROPOSAL_DOF,
+    PROPOSAL_SCALE,
+    PROPOSAL_SHARE,
     RHAT_MAX,
     TAU_RELIABLE,
     SampleError,
@@ -51,8 +57,11 @@ def split_rhat(per_ensemble: Sequence[np.ndarray]) -> float:
     return value if math.isfinite(value) else math.inf  # e.g. a parameter that never moved
 
 
-def _diagnose(chains: list[np.ndarray], phys, min_ess: float) -> dict[str, Any]:
-    """Burn-in, thinning, tau, ESS and R-hat from the chains (steps, walkers, params)."""
+def _diagnose(
+    chains: list[np.ndarray], phys, min_ess: float, final: bool = True
+) -> dict[str, Any]:
+    """Burn-in, thinning, tau, ESS and R-hat from the chains (steps, walkers, params);
+    not ``final``: R-hat only when the other criteria hold (NaN otherwise)."""
     N, W, _ = chains[0].shape
     with np.errstate(all="ignore"):
         tau0 = np.nan_to_num(np.max([autocorr_time(phys(c[N // 2 :])) for c in chains]), nan=N)
@@ -61,20 +70,24 @@ def _diagnose(chains: list[np.ndarray], phys, min_ess: float) -> dict[str, Any]:
         tau = np.nan_to_num(np.stack([autocorr_time(p) for p in post]), nan=np.inf)  # (E, D)
     n_post = N - burn
     ess = np.sum(W * n_post / tau, axis=0)
-    rhat = np.array([split_rhat([p[:, :, j] for p in post]) for j in range(tau.shape[1])])
+    reliable = bool(n_post >= TAU_RELIABLE * np.max(tau))
+    # R-hat (the costly criterion) only when it can decide, or for the final summary.
+    rhat = (
+        np.array([split_rhat([p[:, :, j] for p in post]) for j in range(tau.shape[1])])
+        if final or (reliable and np.min(ess) >= min_ess)
+        else np.full(tau.shape[1], np.nan)
+    )
+    # Thinning: half a tau, and no more kept draws than MAX_KEPT over the ensembles.
+    thin = max(1, int(0.5 * min(np.min(tau), N)), math.ceil(len(chains) * W * n_post / MAX_KEPT))
     return {
         "burn": burn,
-        "thin": max(1, int(0.5 * min(np.min(tau), N))),
+        "thin": thin,
         "tau": tau,
         "ess": ess,
         "rhat": rhat,
         "n_post": n_post,
-        "reliable": bool(n_post >= TAU_RELIABLE * np.max(tau)),
-        "ok": bool(
-            n_post >= TAU_RELIABLE * np.max(tau)
-            and np.min(ess) >= min_ess
-            and np.max(rhat) < RHAT_MAX
-        ),
+        "reliable": reliable,
+        "ok": bool(reliable and np.min(ess) >= min_ess and np.max(rhat) < RHAT_MAX),
     }
 
 
@@ -113,12 +126,86 @@ class _Run:
         }
 
 
+class StudentProposal:
+    """An independence proposal for :class:`emcee.moves.MHMove`: a multivariate Student-t
+    whose centre and scale come from earlier draws of the same ensemble (frozen before
+    the draws it proposes for are kept, so the chain is an ordinary Metropolis-Hastings
+    chain with a fixed kernel).
+
+    Parameters
+    ----------
+    draws
+        Earlier draws of the ensemble, shape (n, dimension), unconstrained coordinates.
+    """
+
+    def __init__(self, draws: np.ndarray):
+        D = draws.shape[1]
+        self.mean = np.mean(draws, axis=0)
+        C = np.atleast_2d(np.cov(draws.T)) * PROPOSAL_SCALE**2
+        # A ridge for an ensemble that has not spread in some direction (never singular).
+        C += np.eye(D) * 1e-10 * max(float(np.trace(C)) / D, 1e-300)
+        self.chol = np.linalg.cholesky(C)
+        self.dim = D
+
+    def log_density(self, x: np.ndarray) -> np.ndarray:
+        """Log density up to a constant at the rows of ``x``."""
+        y = scipy.linalg.solve_triangular(self.chol, (x - self.mean).T, lower=True)
+        return -0.5 * (PROPOSAL_DOF + self.dim) * np.log1p(np.sum(y * y, axis=0) / PROPOSAL_DOF)
+
+    def __call__(self, coords: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
+        """New positions for every walker, and ``log q(x) - log q(x')`` (emcee's order)."""
+        K = coords.shape[0]
+        z = random.standard_normal((K, self.dim))
+        g = random.chisquare(PROPOSAL_DOF, K) / PROPOSAL_DOF
+        x = self.mean + (z @ self.chol.T) / np.sqrt(g)[:, None]
+        return x, self.log_density(coords) - self.log_density(x)
+
+
+def _moves(proposal: StudentProposal | None):
+    if proposal is None:
+        return emcee.moves.DEMove()
+    return [
+        (emcee.moves.DEMove(), 1.0 - PROPOSAL_SHARE),
+        (emcee.moves.MHMove(proposal), PROPOSAL_SHARE),
+    ]
+
+
+def _sampler(W, D, logp, proposal, random_state) -> emcee.EnsembleSampler:
+    smp = emcee.EnsembleSampler(W, D, logp, vectorize=True, moves=_moves(proposal))
+    smp.random_state = random_state
+    if not np.array_equal(smp.random_state[1], random_state[1]):
+        raise RuntimeError("emcee did not accept the seed of its random state")
+    return smp
+
+
+def _adapt(pool, samplers, states, W, D, logp, report) -> tuple[list, list]:
+    """The adaptation: :data:`ADAPT_STEPS` of differential evolution, then as many with
+    the Student-t proposal fitted to each ensemble's later half of them, refitted to the
+    later half of those. Returns fresh samplers with the final proposal, and the states
+    they start from; every adaptation draw is discarded."""
+    for _round in range(2):
+        states = list(pool.map(functools.partial(_advance, ADAPT_STEPS), samplers, states))
+        report(ADAPT_STEPS)
+        samplers = [
+            _sampler(W, D, logp, StudentProposal(_later_half(s)), s.random_state)
+            for s in samplers
+        ]
+    return samplers, states
+
+
+def _later_half(s: emcee.EnsembleSampler) -> np.ndarray:
+    c = s.get_chain()
+    return c[c.shape[0] // 2 :].reshape(-1, c.shape[2])
+
+
 def run_chains(
     lp, fits, names, u0, priors, settings: SamplerSettings,
     progress,
 ) -> _Run:  # fmt: skip
-    """Independent emcee ensembles from the least-squares optimum, extended until every
-    convergence criterion holds or ``max_steps`` is reached."""
+    """Independent emcee ensembles from the least-squares optimum: an adaptation
+    (:func:`_adapt`, discarded), then the kept run, stopped once every convergence
+    criterion holds (checked every :data:`CHUNK` steps) or extended until they do, up
+    to ``max_steps``."""
     s = settings
     n_walkers, n_steps, max_steps = s.n_walkers, s.n_steps, s.step_limit
     n_ensembles, min_ess, seed = s.n_ensembles, s.min_ess, s.seed
@@ -145,32 +232,42 @@ def run_chains(
     def logp(X: np.ndarray) -> np.ndarray:
         return batched(v_logp_q, lp, X, size=W // 2)[0]
 
-    samplers = []
-    for e in range(n_ensembles):
-        moves = emcee.moves.DEMove()
-        smp = emcee.EnsembleSampler(W, D, logp, vectorize=True, moves=moves)
-        state = np.random.RandomState(int(seq[n_ensembles + e].generate_state(1)[0]))
-        smp.random_state = state.get_state()
-        if not np.array_equal(smp.random_state[1], state.get_state()[1]):
-            raise RuntimeError("emcee did not accept the seed of its random state")
-        samplers.append(smp)
+    samplers = [
+        _sampler(
+            W, D, logp, None,
+            np.random.RandomState(int(seq[n_ensembles + e].generate_state(1)[0])).get_state(),
+        )
+        for e in range(n_ensembles)
+    ]  # fmt: skip
     phys = functools.partial(to_physical_columns, names)
+    adapt = 2 * ADAPT_STEPS
     done, target, states = 0, n_steps, list(starts)
+    adapted = 0
+
+    def report(k: int) -> None:
+        nonlocal adapted
+        adapted += k
+        if progress is not None:
+            progress(adapted + done, adapt + target)
+
     with ThreadPoolExecutor(max_workers=n_ensembles) as pool:
+        samplers, states = _adapt(pool, samplers, states, W, D, logp, report)
         while True:
-            while done < target:
-                k = min(CHUNK, target - done)
-                states = list(pool.map(functools.partial(_advance, k), samplers, states))
-                done += k
-                if progress is not None:
-                    progress(done, target)
+            k = min(CHUNK, target - done)
+            states = list(pool.map(functools.partial(_advance, k), samplers, states))
+            done += k
+            report(0)
             chains = [s.get_chain() for s in samplers]
-            diag = _diagnose(chains, phys, min_ess)
+            diag = _diagnose(chains, phys, min_ess, final=False)
             if diag["ok"] or done >= max_steps:
+                if np.isnan(diag["rhat"]).any():
+                    diag = _diagnose(chains, phys, min_ess)
                 break
+            if done < target:
+                continue
             tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], done)))
             need = diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (n_ensembles * W))
-            target = int(min(max_steps, max(1.2 * need, done + max(CHUNK, done // 2))))
+            target = int(min(max_steps, max(1.2 * need, done + CHUNK)))
     return _Run(samplers, chains, diag, seq, t_compile, time.perf_counter())
 
 

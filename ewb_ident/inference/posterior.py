@@ -31,9 +31,24 @@ autocorrelation times than the default stretch move on this model; not
 ``DESnookerMove``, which in emcee <= 3.1.6 samples a Gaussian with 40 % too little
 variance, fixed upstream in dfm/emcee#531; the calibration study found it). At least two
 independent ensembles (own seeds, own overdispersed starts: twice the Laplace sd at the
-least-squares optimum) run side by side. Per ensemble the integrated autocorrelation
+least-squares optimum) run side by side.
+
+Each ensemble first adapts (discarded): 100 DEMove steps, then 100 steps of which 80 %
+propose from a multivariate Student-t (10 degrees of freedom, 1.15x the spread) fitted
+to the later half of the ensemble's own DEMove draws, and that proposal refitted to the
+later half of these. The kept run uses the last proposal, frozen, in the same 80/20
+mixture with DEMove (``emcee.moves.MHMove`` with the independence sampler's Hastings
+ratio): a fixed, valid Metropolis-Hastings kernel, whose proposals are independent of
+the walker's position. On this model's near-Gaussian posteriors it cuts the
+autocorrelation time about 9-fold (steps_200hz, 14 parameters: tau 6 steps instead of
+54, the same means and intervals); DEMove's share keeps the chain moving where the
+posterior is not Gaussian.
+
+Per ensemble the integrated autocorrelation
 time ``tau`` (emcee's estimator, averaged over walkers) sets burn-in (3 tau) and
-thinning (tau/2); ESS = walkers x steps after burn-in / tau, summed over ensembles.
+thinning (tau/2, or more to keep at most 10,000 draws); ESS = walkers x steps after
+burn-in / tau, summed over ensembles. The run stops at the first check (every 100 steps)
+at which every criterion below holds.
 R-hat is the rank-normalised split R-hat *between ensembles* (each ensemble's walkers
 pooled, split in time): R-hat over the walkers of one ensemble is not valid, they are
 not independent chains. ``converged`` needs all of: steps after burn-in >= 50 tau (the
@@ -136,7 +151,8 @@ def sample(
     n_walkers
         Walkers per ensemble (even; default ``max(32, 4 * dimension)``).
     n_steps
-        Steps per ensemble.
+        Steps per ensemble planned for the kept run (after the 200 adaptation steps); it
+        stops earlier once converged (checked every 100 steps).
     max_steps
         The run is extended (deterministically) until it has converged or has this many
         steps (default ``10 * n_steps``; ``n_steps`` switches extension off).
