@@ -1,11 +1,13 @@
 """Calibration of the posterior intervals on synthetic traces with known truth.
 
 For each repeat ``i``: a rig unit is drawn around the nominal rig
-(``rig.vary(RigParams(), default_rng([SEED, i]), rel=0.05)``: every physical parameter
+(``rig.vary(RigParams(), default_rng([seed, i]), rel=0.05)``, ``--seed``, default
+:data:`SEED`: every physical parameter
 times a log-normal factor with 5 % spread), a 3 s, 200 Hz trace of the open-loop
 ``steps`` profile is simulated with the rig's default sensor noise (noise seed ``i``),
 and :func:`ewb_ident.inference.posterior.sample` is run with seed ``i`` and default settings
-(2 ensembles, DE moves, 2000 steps extended until converged, noise model ``auto``,
+(2 ensembles, adaptation then the Student-t/DE mixture, stopped once converged, noise
+model ``auto``,
 default priors). ``kT`` is held at the unit's true value: without a load-torque
 measurement only ``M/kT`` and ``v/kT`` are identified, so with ``kT`` at the seed value
 the "truth" of M and v would be a ratio, not the rig's value.
@@ -105,8 +107,8 @@ def _truth_of(name: str, params: rig.RigParams, truth: dict) -> float | None:
     return float(getattr(params, base)) if hasattr(params, base) else None
 
 
-def run_repeat(i: int, stages: tuple[str, ...] | str) -> list[dict]:
-    params = rig.vary(rig.RigParams(), np.random.default_rng([SEED, i]), rel=0.05)
+def run_repeat(i: int, stages: tuple[str, ...] | str, seed: int = SEED) -> list[dict]:
+    params = rig.vary(rig.RigParams(), np.random.default_rng([seed, i]), rel=0.05)
     trace, truth = rig.simulate_rig(
         params, profile="steps", sample_rate_hz=200.0, duration_s=3.0, seed=i, name=f"cal{i}"
     )
@@ -246,6 +248,7 @@ def run(
     stage: str = "chain",
     repeats: int = 100,
     log=None,
+    seed: int = SEED,
 ):
     """Run (or resume) the study into ``out_dir``; returns (table, Markdown report).
 
@@ -263,7 +266,7 @@ def run(
     done = {int(r["repeat"]) for r in rows}
     for i in range(repeats):
         if i not in done:
-            rows += run_repeat(i, stages)
+            rows += run_repeat(i, stages, seed)
             _write(path, rows)
             if log:
                 cov = summarise(rows)["params"]
@@ -286,6 +289,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=100)
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--out", type=Path, default=REPORTS)
+    ap.add_argument("--seed", type=int, default=SEED, help="draw other rig units")
     args = ap.parse_args()
     if args.report_only:
         text = report(args.out)
@@ -296,6 +300,7 @@ def main() -> None:
             stage=args.stage,
             repeats=args.repeats,
             log=lambda line: print(line, flush=True),
+            seed=args.seed,
         )
     print(text)
 
