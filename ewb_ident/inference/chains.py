@@ -26,7 +26,9 @@ from ewb_ident.inference.log_posterior import (
     CHUNK,
     MAX_KEPT,
     POOR_FIT,
+    PROPOSAL_CHECK_DRAWS,
     PROPOSAL_DOF,
+    PROPOSAL_K_MAX,
     PROPOSAL_SCALE,
     PROPOSAL_SHARE,
     RHAT_MAX,
@@ -57,9 +59,7 @@ def split_rhat(per_ensemble: Sequence[np.ndarray]) -> float:
     return value if math.isfinite(value) else math.inf  # e.g. a parameter that never moved
 
 
-def _diagnose(
-    chains: list[np.ndarray], phys, min_ess: float, final: bool = True
-) -> dict[str, Any]:
+def _diagnose(chains: list[np.ndarray], phys, min_ess: float, final: bool = True) -> dict[str, Any]:
     """Burn-in, thinning, tau, ESS and R-hat from the chains (steps, walkers, params);
     not ``final``: R-hat only when the other criteria hold (NaN otherwise)."""
     N, W, _ = chains[0].shape
@@ -161,6 +161,38 @@ class StudentProposal:
         return x, self.log_density(coords) - self.log_density(x)
 
 
+def _checked(s: emcee.EnsembleSampler, logp) -> tuple[StudentProposal | None, float]:
+    """The Student-t proposal fitted to the later half of ``s``'s draws (``None`` when
+    its tails are too light for the posterior: the Pareto k-hat of the importance
+    weights posterior / proposal on :data:`PROPOSAL_CHECK_DRAWS` draws from it (PSIS,
+    Vehtari et al.) at or above :data:`PROPOSAL_K_MAX`. An independence sampler is
+    only reliable while those weights stay bounded: with heavier posterior tails (a
+    curved ridge, a parameter at a bound) a walker that reaches them stays stuck), and
+    the k-hat."""
+    prop = StudentProposal(_later_half(s))
+    rs = np.random.RandomState()
+    rs.set_state(s.random_state)  # a copy: the sampler's own stream is not advanced
+    x, _ = prop(np.zeros((PROPOSAL_CHECK_DRAWS, prop.dim)), rs)
+    lw = logp(x) - prop.log_density(x)
+    finite = np.isfinite(lw)
+    if not finite.any():
+        return None, math.inf
+    lw = np.where(finite, lw, np.min(lw[finite]) - 50.0)  # outside the prior: ~zero weight
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        k_hat = float(import_arviz().psislw(lw - np.max(lw))[1])
+    return (prop if k_hat < PROPOSAL_K_MAX else None), k_hat
+
+
+def _kernel_name(proposal: StudentProposal | None, k_hat: float) -> str:
+    if proposal is None:
+        return f"emcee DEMove (Student-t proposal refused: Pareto k {k_hat:.2f})"
+    return (
+        f"emcee DEMove {100 * (1 - PROPOSAL_SHARE):.0f} % + Student-t independence MHMove "
+        f"{100 * PROPOSAL_SHARE:.0f} % (Pareto k {k_hat:.2f})"
+    )
+
+
 def _moves(proposal: StudentProposal | None):
     if proposal is None:
         return emcee.moves.DEMove()
@@ -178,19 +210,23 @@ def _sampler(W, D, logp, proposal, random_state) -> emcee.EnsembleSampler:
     return smp
 
 
-def _adapt(pool, samplers, states, W, D, logp, report) -> tuple[list, list]:
+def _adapt(pool, samplers, states, W, D, logp, report) -> tuple[list, list, list[str]]:
     """The adaptation: :data:`ADAPT_STEPS` of differential evolution, then as many with
-    the Student-t proposal fitted to each ensemble's later half of them, refitted to the
-    later half of those. Returns fresh samplers with the final proposal, and the states
-    they start from; every adaptation draw is discarded."""
+    the Student-t proposal fitted to each ensemble's later half of them (when it passes
+    :func:`_checked`), refitted to the later half of those and checked again. Returns
+    fresh samplers with the final kernel, the states they start from and each kernel's
+    name; every adaptation draw is discarded."""
+    names = [""] * len(samplers)
     for _round in range(2):
         states = list(pool.map(functools.partial(_advance, ADAPT_STEPS), samplers, states))
         report(ADAPT_STEPS)
+        checked = [_checked(s, logp) for s in samplers]
+        names = [_kernel_name(p, k) for p, k in checked]
         samplers = [
-            _sampler(W, D, logp, StudentProposal(_later_half(s)), s.random_state)
-            for s in samplers
+            _sampler(W, D, logp, p, s.random_state)
+            for (p, _), s in zip(checked, samplers, strict=True)
         ]
-    return samplers, states
+    return samplers, states, names
 
 
 def _later_half(s: emcee.EnsembleSampler) -> np.ndarray:
@@ -251,7 +287,7 @@ def run_chains(
             progress(adapted + done, adapt + target)
 
     with ThreadPoolExecutor(max_workers=n_ensembles) as pool:
-        samplers, states = _adapt(pool, samplers, states, W, D, logp, report)
+        samplers, states, kernels = _adapt(pool, samplers, states, W, D, logp, report)
         while True:
             k = min(CHUNK, target - done)
             states = list(pool.map(functools.partial(_advance, k), samplers, states))
@@ -268,6 +304,11 @@ def run_chains(
             tau = float(np.max(np.where(np.isfinite(diag["tau"]), diag["tau"], done)))
             need = diag["burn"] + max(TAU_RELIABLE * tau, min_ess * tau / (n_ensembles * W))
             target = int(min(max_steps, max(1.2 * need, done + CHUNK)))
+    diag["moves"] = (
+        kernels[0]
+        if len(set(kernels)) == 1
+        else "; ".join(f"ensemble {e}: {k}" for e, k in enumerate(kernels))
+    )
     return _Run(samplers, chains, diag, seq, t_compile, time.perf_counter())
 
 

@@ -39,10 +39,13 @@ to the later half of the ensemble's own DEMove draws, and that proposal refitted
 later half of these. The kept run uses the last proposal, frozen, in the same 80/20
 mixture with DEMove (``emcee.moves.MHMove`` with the independence sampler's Hastings
 ratio): a fixed, valid Metropolis-Hastings kernel, whose proposals are independent of
-the walker's position. On this model's near-Gaussian posteriors it cuts the
-autocorrelation time about 9-fold (steps_200hz, 14 parameters: tau 6 steps instead of
-54, the same means and intervals); DEMove's share keeps the chain moving where the
-posterior is not Gaussian.
+the walker's position. Each fitted proposal is first checked: the Pareto k-hat (PSIS)
+of the importance weights posterior / proposal on 2,000 draws from it must be below 0.5
+(bounded weights are what an independence sampler needs; with heavier posterior tails a
+walker that reaches them stays stuck), else that ensemble runs DEMove alone, as before;
+``diagnostics.moves`` says which kernel ran and its k-hat. On this model's near-Gaussian
+posteriors the mixture cuts the autocorrelation time about 9-fold (steps_200hz, 14
+parameters: tau 6 steps instead of 54, the same means and intervals).
 
 Per ensemble the integrated autocorrelation
 time ``tau`` (emcee's estimator, averaged over walkers) sets burn-in (3 tau) and

@@ -355,7 +355,7 @@ def _diagnostics(diag, names, acc, stuck, E, N, W, T, min_ess) -> dict[str, Any]
         "burn": diag["burn"],
         "thin": diag["thin"],
         "steps_after_burn": diag["n_post"],
-        "moves": "emcee DEMove",
+        "moves": diag.get("moves", "emcee DEMove"),
         "tau": {
             n: [finite_or_none(float(t)) for t in diag["tau"][:, j]] for j, n in enumerate(names)
         },
