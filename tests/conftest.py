@@ -3,8 +3,6 @@ on-disk caches of compiled programs in a folder that lives for one test session.
 
 import gc
 import os
-import shutil
-import tempfile
 
 import jax
 import pytest
@@ -15,13 +13,17 @@ jax.config.update("jax_enable_x64", True)
 
 
 @pytest.fixture(autouse=True, scope="session")
-def _session_compilation_cache():
+def _session_compilation_cache(tmp_path_factory):
     """Compiled programs are cached on disk for this session only, as the CLI caches them
     for a user: a module that needs a program an earlier module compiled loads it instead
     of compiling it again (each module drops its compiled code, below). The folder starts
     empty, so every session still compiles each program once and nothing carries over
-    between sessions."""
-    folder = tempfile.mkdtemp(prefix="ewb-ident-test-jax-")
+    between sessions. With pytest-xdist the workers of one run share it (pytest's base
+    temporary folder of the run; pytest removes old runs' folders)."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the run's folder, above each worker's own
+    folder = os.path.join(base, "compiled")
     # The package's programs (traced, lowered and compiled once per session), and JAX's
     # cache for the rest (its XLA code only). A program of the package's compiled from
     # JAX's cache (another key, the same code) does not serialise whole; it fails the
@@ -32,7 +34,6 @@ def _session_compilation_cache():
     yield
     jax.config.update("jax_compilation_cache_dir", None)
     programs.set_cache_folder(None)
-    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")

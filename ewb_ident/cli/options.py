@@ -223,10 +223,14 @@ def command_line() -> str:
     import shlex
     import sys
 
-    import click
-
     if Path(sys.argv[0]).name in ("ewb-ident", "__main__.py"):
         return shlex.join(["ewb-ident", *sys.argv[1:]])
-    ctx = click.get_current_context()
+    try:  # typer >= 0.2x runs its own copy of click; older ones run click itself
+        from typer._click.globals import get_current_context
+    except ImportError:
+        from click import get_current_context
+    ctx = get_current_context(silent=True)
+    if ctx is None:
+        return "ewb-ident (called from Python)"
     opts = [f"{k}={v!r}" for k, v in ctx.params.items()]
     return f"{ctx.command_path} ({', '.join(opts)})"
