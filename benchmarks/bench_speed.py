@@ -14,7 +14,8 @@ Rows (each with its target):
    at 1 kHz (``datasets/position_1khz.csv``), cold and with the cache filled;
 5. the whole-chain posterior to ESS >= 1000 for a, b, c, mu (``ewb-ident sample
    --min-ess 1000``), cold (fresh process, empty cache) and warm (the same command with
-   the cache filled);
+   the cache filled), and in one Python process: the first call (compiling) and the
+   second (warm);
 6. the default test suite is timed by CI (``bash .ci/run``), not here.
 
 Every command runs in a fresh process with ``EWB_IDENT_CACHE`` pointing at a temporary
@@ -25,6 +26,7 @@ Run it with nothing else on the machine: the figures are wall times.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -62,6 +64,38 @@ def _cold_and_filled(args: list[str]) -> tuple[float, float]:
         return _command(args, cache), _command(args, cache)
 
 
+_POSTERIOR_TWICE = """
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+from ewb_ident.data.readers import read_trace
+from ewb_ident.inference.posterior import sample
+trace = read_trace(sys.argv[1])
+times = []
+for _ in range(2):
+    t0 = time.perf_counter()
+    res = sample(trace, min_ess=1000.0)
+    times.append(time.perf_counter() - t0)
+    assert res.converged and min(res.stats[n]["ess"] for n in ("a", "b", "c", "mu")) >= 1000
+print(json.dumps(times))
+"""
+
+
+def _in_process_posterior() -> tuple[float, float]:
+    """``sample(..., min_ess=1000)`` twice in one fresh process (empty program cache):
+    the first call compiles, the second is the warm figure (issue 12's "warm")."""
+    with tempfile.TemporaryDirectory() as cache:
+        proc = subprocess.run(
+            [sys.executable, "-c", _POSTERIOR_TWICE, str(TRACE_FIT)],
+            capture_output=True, text=True, cwd=ROOT,
+            env=dict(os.environ, EWB_IDENT_CACHE=cache),
+        )  # fmt: skip
+    if proc.returncode:
+        raise SystemExit(f"posterior twice failed: {proc.stderr[-500:]}")
+    first, second = json.loads(proc.stdout.strip().splitlines()[-1])
+    return first, second
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "bench_speed.md")
@@ -97,6 +131,11 @@ def main() -> None:
         f"{'yes' if cold <= 15 else 'no'} |")  # fmt: skip
     row(f"| posterior to ESS >= 1000, cache filled | {filled:.1f} s | | | <= 5 s | "
         f"{'yes' if filled <= 5 else 'no'} |")  # fmt: skip
+    cold, warm = _in_process_posterior()
+    row(f"| posterior to ESS >= 1000 in one Python process, first call | {cold:.1f} s | | | "
+        f"<= 15 s | {'yes' if cold <= 15 else 'no'} |")  # fmt: skip
+    row(f"| the same, second call (warm) | {warm:.1f} s | | | <= 5 s | "
+        f"{'yes' if warm <= 5 else 'no'} |")  # fmt: skip
     text = "# `python benchmarks/bench_speed.py`\n\n" + "\n".join(lines) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
