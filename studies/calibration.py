@@ -249,6 +249,7 @@ def run(
     repeats: int = 100,
     log=None,
     seed: int = SEED,
+    first: int = 0,
 ):
     """Run (or resume) the study into ``out_dir``; returns (table, Markdown report).
 
@@ -264,7 +265,7 @@ def run(
     path = out_dir / f"calibration_{'+'.join(names)}.csv"
     rows = _read(path)
     done = {int(r["repeat"]) for r in rows}
-    for i in range(repeats):
+    for i in range(first, repeats):
         if i not in done:
             rows += run_repeat(i, stages, seed)
             _write(path, rows)
@@ -290,6 +291,7 @@ def main() -> None:
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--out", type=Path, default=REPORTS)
     ap.add_argument("--seed", type=int, default=SEED, help="draw other rig units")
+    ap.add_argument("--first", type=int, default=0, help="start at this repeat (shard by hand)")
     args = ap.parse_args()
     if args.report_only:
         text = report(args.out)
@@ -301,6 +303,7 @@ def main() -> None:
             repeats=args.repeats,
             log=lambda line: print(line, flush=True),
             seed=args.seed,
+            first=args.first,
         )
     print(text)
 
