@@ -1,5 +1,5 @@
 """Test configuration: float64 everywhere, as the CLI sets it at its entry point, and
-on-disk caches of compiled programs in a folder that lives for one test session."""
+on-disk caches of compiled programs in a folder that starts empty for each test run."""
 
 import gc
 import os

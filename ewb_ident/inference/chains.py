@@ -152,12 +152,15 @@ class StudentProposal:
         y = scipy.linalg.solve_triangular(self.chol, (x - self.mean).T, lower=True)
         return -0.5 * (PROPOSAL_DOF + self.dim) * np.log1p(np.sum(y * y, axis=0) / PROPOSAL_DOF)
 
+    def draw(self, n: int, random) -> np.ndarray:
+        """``n`` draws, shape (n, dimension), from ``random`` (a NumPy RandomState)."""
+        z = random.standard_normal((n, self.dim))
+        g = random.chisquare(PROPOSAL_DOF, n) / PROPOSAL_DOF
+        return self.mean + (z @ self.chol.T) / np.sqrt(g)[:, None]
+
     def __call__(self, coords: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
         """New positions for every walker, and ``log q(x) - log q(x')`` (emcee's order)."""
-        K = coords.shape[0]
-        z = random.standard_normal((K, self.dim))
-        g = random.chisquare(PROPOSAL_DOF, K) / PROPOSAL_DOF
-        x = self.mean + (z @ self.chol.T) / np.sqrt(g)[:, None]
+        x = self.draw(coords.shape[0], random)
         return x, self.log_density(coords) - self.log_density(x)
 
 
@@ -172,7 +175,7 @@ def _checked(s: emcee.EnsembleSampler, logp) -> tuple[StudentProposal | None, fl
     prop = StudentProposal(_later_half(s))
     rs = np.random.RandomState()
     rs.set_state(s.random_state)  # a copy: the sampler's own stream is not advanced
-    x, _ = prop(np.zeros((PROPOSAL_CHECK_DRAWS, prop.dim)), rs)
+    x = prop.draw(PROPOSAL_CHECK_DRAWS, rs)
     lw = logp(x) - prop.log_density(x)
     finite = np.isfinite(lw)
     if not finite.any():
@@ -216,17 +219,15 @@ def _adapt(pool, samplers, states, W, D, logp, report) -> tuple[list, list, list
     :func:`_checked`), refitted to the later half of those and checked again. Returns
     fresh samplers with the final kernel, the states they start from and each kernel's
     name; every adaptation draw is discarded."""
-    names = [""] * len(samplers)
     for _round in range(2):
         states = list(pool.map(functools.partial(_advance, ADAPT_STEPS), samplers, states))
         report(ADAPT_STEPS)
         checked = [_checked(s, logp) for s in samplers]
-        names = [_kernel_name(p, k) for p, k in checked]
         samplers = [
             _sampler(W, D, logp, p, s.random_state)
             for (p, _), s in zip(checked, samplers, strict=True)
         ]
-    return samplers, states, names
+    return samplers, states, [_kernel_name(p, k) for p, k in checked]
 
 
 def _later_half(s: emcee.EnsembleSampler) -> np.ndarray:
