@@ -114,19 +114,27 @@ def fit(t, V, measured, sigma, free, start, r_eff=0.15, fixed=None):
     return params(res.x), res
 
 
-def main(path: str) -> None:
+def main(path: str, problem: str | None = None) -> None:
+    """Fit the trace at ``path``. With ``problem`` (a JSON file: ``start``, ``sigma``,
+    ``free``, ``fixed``, ``r_eff``), from those start values with those weights, as the
+    benchmark's warm comparison does; without, every channel's noise from second
+    differences and the seed values as the start."""
     import pandas as pd
 
     df = pd.read_csv(path)
     t = df["time_s"].to_numpy()
     chans = [c for c in ("theta_deg", "x_m", "force_N", "torque_Nm", "current_A") if c in df]
     measured = {c: df[c].to_numpy() for c in chans}
-    sigma = {c: np.std(np.diff(measured[c], 2)) / np.sqrt(6) for c in chans}
-    free = FREE
-    start = {"theta0_deg": float(measured["theta_deg"][0])}
-    p, res = fit(t, df["voltage_V"].to_numpy(), measured, sigma, free, start)
+    if problem:
+        spec = json.loads(open(problem).read())
+        sigma, free, start = spec["sigma"], spec["free"], spec["start"]
+        fixed, r_eff = spec["fixed"], spec["r_eff"]
+    else:
+        sigma = {c: np.std(np.diff(measured[c], 2)) / np.sqrt(6) for c in chans}
+        free, start, fixed, r_eff = FREE, {"theta0_deg": float(measured["theta_deg"][0])}, {}, 0.15
+    p, res = fit(t, df["voltage_V"].to_numpy(), measured, sigma, free, start, r_eff, fixed)
     print(json.dumps({"params": {n: p[n] for n in free}, "nfev": res.nfev, "status": res.status}))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(*sys.argv[1:3])

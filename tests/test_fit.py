@@ -239,3 +239,52 @@ def test_standard_errors_widen_where_the_model_leaves_physics_out():
         assert abs(z_white) > 3.0 and abs(z) < 1.645
     doc = f.to_json()
     assert doc["stderr_white"]["a"] == pytest.approx(f.stderr_white["a"])
+
+
+def test_the_solver_reaches_the_optimum_optimistix_reaches(staircase):
+    """The NumPy Levenberg-Marquardt around the compiled residuals and Jacobian stops
+    where optimistix's solver (compiled whole; the seed fits' solver before) stops, to a
+    small fraction of a standard error, at a cost no higher."""
+    import optimistix as optx
+
+    from ewb_ident.inference.log_posterior import info_of
+
+    trace, _ = staircase
+    result = fit(trace)
+    assert result.converged
+    problem, data = result.problem, result.data
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
+    ref = optx.least_squares(problem, solver, result.u, args=data, max_steps=300, throw=False)
+    assert ref.result == optx.RESULTS.successful
+    u_ref = np.asarray(ref.value)
+    cost = float(np.sum(np.asarray(problem(result.u, data)) ** 2))
+    cost_ref = float(np.sum(np.asarray(problem(u_ref, data)) ** 2))
+    assert cost <= cost_ref * (1 + 1e-9)
+    for j, name in enumerate(result.corr_names):
+        se = result.stderr[name]
+        slope = abs(float(info_of(name).dp_du(result.u[j])))
+        assert abs(result.u[j] - u_ref[j]) * slope < 0.01 * se, name
+
+
+@pytest.mark.parametrize("stage", ["motor", "gap", "force", "torque", "chain"])
+def test_one_program_predicts_each_stage_as_the_chain_evaluator_does(staircase, stage):
+    """The fits' single compiled program picks each stage's input by data; its
+    predictions equal :func:`ewb_ident.model.predict.predict` of that stage."""
+    import jax.numpy as jnp
+
+    from ewb_ident.inference.problem import build_setup, evaluate, to_u
+    from ewb_ident.model.integrate import EXPONENTIAL
+    from ewb_ident.model.params import MODEL_PARAMS, EWBParams
+    from ewb_ident.model.predict import predict
+
+    trace, _ = staircase
+    setup = build_setup(trace, stage, None, None, {}, EXPONENTIAL)
+    u = np.asarray(to_u(setup.problem, {}, setup.base, setup.tdata)) + 0.01
+    data = setup.data(setup.sensor_sigma())
+    _, preds, _ = evaluate(setup.problem, u, data)
+    vals = setup.problem.values(jnp.asarray(u), setup.base.as_dict() | {"theta0_deg": 0.0}, 0)
+    p = EWBParams(**{n: vals[n] for n in MODEL_PARAMS})
+    d = {"meas": data["traces"][0], "dt": data["traces"][0]["dt"], "r_eff": trace.r_eff_m}
+    ref = predict(stage, p, vals["theta0_deg"], (), d, 1, "exponential")
+    for ch in setup.channels[0]:
+        np.testing.assert_allclose(preds[0][ch], np.asarray(ref[ch]), rtol=1e-12, atol=1e-12)

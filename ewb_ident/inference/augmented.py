@@ -9,8 +9,8 @@ The solver is Levenberg-Marquardt (:func:`ewb_ident.inference.solvers.levenberg_
 from the best of a few
 starting points.
 
-Arrays are padded to a multiple of :data:`PAD` samples (padding weighted zero) so that
-traces of similar length share compiled code.
+Arrays are padded to a multiple of :data:`ewb_ident.model.programs.PAD` samples (padding
+weighted zero) so that traces of similar length share compiled code.
 """
 
 from __future__ import annotations
@@ -31,10 +31,8 @@ from ewb_ident.inference.uncertainty import serial_sd
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
-from ewb_ident.model.programs import program
+from ewb_ident.model.programs import pad_to, padded_length, program
 
-#: Arrays are padded to a multiple of this many samples.
-PAD = 256
 #: Most starting points tried per fit.
 MAX_STARTS = 24
 #: Columns a fit may read.
@@ -47,16 +45,6 @@ COLUMNS = (
     "current_A",
     "disc_speed_rad_s",
 )
-
-
-def padded_length(n: int) -> int:
-    """``n`` rounded up to a multiple of :data:`PAD`."""
-    return int(-(-n // PAD) * PAD)
-
-
-def pad_to(y: np.ndarray, n_pad: int) -> np.ndarray:
-    y = np.asarray(y, dtype=float)
-    return np.concatenate([y, np.full(n_pad - y.size, y[-1])]) if n_pad > y.size else y
 
 
 def slow_smooth(y: np.ndarray, sigma: float, width: int = 5, fast: int = 1) -> np.ndarray:

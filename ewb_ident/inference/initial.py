@@ -22,16 +22,19 @@ These are starts, not answers: the least-squares fits refine them.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter
+
+from ewb_ident.data.metrics import ar1_filter
 
 DEG_PER_RAD = 180.0 / np.pi
 
 
-def _lag_speed(V: np.ndarray, dt: float, tau: float) -> np.ndarray:
+def _lag_speed(V: np.ndarray, dt: float, tau) -> np.ndarray:
     """Speed at the sample times of a unit-gain first-order lag ``tau`` driven from rest
-    by ``V`` under zero-order hold (exact): ``w[k+1] = q w[k] + (1 - q) V[k]``."""
-    q = np.exp(-dt / tau)
-    return lfilter([0.0, 1.0 - q], [1.0, -q], V)
+    by ``V`` under zero-order hold (exact): ``w[k+1] = q w[k] + (1 - q) V[k]``. Several
+    ``tau`` (a 1-D array) give one row each."""
+    q = np.exp(-dt / np.asarray(tau, float))[..., None]
+    w = ar1_filter((1.0 - q) * np.asarray(V, float), q)
+    return np.concatenate([np.zeros((*w.shape[:-1], 1)), w[..., :-1]], axis=-1)
 
 
 def motor_lag(voltage_V: np.ndarray, theta_deg: np.ndarray, dt: float) -> dict[str, float]:
@@ -56,9 +59,10 @@ def motor_lag(voltage_V: np.ndarray, theta_deg: np.ndarray, dt: float) -> dict[s
     V = np.asarray(voltage_V, float)
     th = np.asarray(theta_deg, float)
     best = None
-    for tau in np.geomspace(2e-3, 1.0, 48):
+    taus = np.geomspace(2e-3, 1.0, 48)
+    speeds = _lag_speed(V, dt, taus)  # omega with K = 1, one row per tau
+    for tau, w in zip(taus, speeds, strict=True):
         q = np.exp(-dt / tau)
-        w = _lag_speed(V, dt, tau)  # omega with K = 1
         # theta increment over [t_k, t_k+1): tau (1 - q) w_k + (dt - tau (1 - q)) V_k
         inc = tau * (1.0 - q) * w + (dt - tau * (1.0 - q)) * V
         y = np.concatenate([[0.0], np.cumsum(inc[:-1])]) * DEG_PER_RAD
@@ -141,25 +145,30 @@ def bell_start(x_m: np.ndarray, force_N: np.ndarray) -> dict[str, float]:
     span = float(np.ptp(flank)) if flank.size > 2 else float(np.ptp(x)) / 4
     span = max(span, 1e-6)
     best = None
+    cs = x_top + span * np.linspace(-0.3, 3.0, 34)
     for f_rt in f_top * np.array([1.0, 1.02, 1.06, 1.15, 1.3, 1.6, 2.0, 3.0]):
         use = (F > 0.03 * f_rt) & (F < 0.97 * f_rt)
         if use.sum() < 5:
             continue
         y = np.log(f_rt / F[use] - 1.0)
-        for c in x_top + span * np.linspace(-0.3, 3.0, 34):
-            d = np.abs(x[use] - c)
-            ok = d > 1e-3 * span
-            if ok.sum() < 5:
-                continue
-            X = np.log(d[ok])
-            slope, icpt = np.polyfit(X, y[ok], 1)
-            if not slope > 0.2:
-                continue
-            b, a = slope / 2.0, float(np.exp(-icpt / slope))
-            pred = f_rt / (1.0 + np.abs((x - c) / a) ** (2 * b))
+        # A straight line y = slope log|x - c| + icpt for every candidate c at once, by
+        # least squares over the points not at c itself (one row per c).
+        d = np.abs(x[use][None, :] - cs[:, None])
+        ok = d > 1e-3 * span
+        X = np.log(np.where(ok, d, 1.0))
+        m = ok.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            xm = np.where(ok, X, 0.0).sum(axis=1) / m
+            ym = np.where(ok, y[None, :], 0.0).sum(axis=1) / m
+            dx = np.where(ok, X - xm[:, None], 0.0)
+            slope = (dx * (y[None, :] - ym[:, None])).sum(axis=1) / (dx * dx).sum(axis=1)
+        icpt = ym - slope * xm
+        for j in np.flatnonzero((m >= 5) & (slope > 0.2)):
+            b, a = slope[j] / 2.0, float(np.exp(-icpt[j] / slope[j]))
+            pred = f_rt / (1.0 + np.abs((x - cs[j]) / a) ** (2 * b))
             sse = float(np.sum((pred - F) ** 2))
             if np.isfinite(sse) and (best is None or sse < best[0]):
-                best = (sse, {"F_rt": float(f_rt), "a": a, "b": float(b), "c": float(c)})
+                best = (sse, {"F_rt": float(f_rt), "a": a, "b": float(b), "c": float(cs[j])})
     if best is None:
         raise ValueError("no bell fits the force's rising flank")
     return best[1]

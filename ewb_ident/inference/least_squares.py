@@ -16,7 +16,11 @@ again from there.
 
 Parameters are optimised in unconstrained O(1) coordinates (:mod:`ewb_ident.model.params`);
 standard errors come from the Jacobian at the optimum (delta method back to SI units).
-The solver is optimistix's Levenberg-Marquardt; its result code is always checked.
+The solver is Levenberg-Marquardt in NumPy around one compiled program that returns the
+residuals and their Jacobian (:func:`ewb_ident.inference.problem.evaluate`); its status
+is always checked. (optimistix's solver, compiled whole, cost 2-3 s of compilation per
+stage and free set, more than a whole warm fit; it remains the reference the tests
+compare this solver with.)
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from ewb_ident.inference.problem import (
     stage_inputs,
     usable,
 )
-from ewb_ident.inference.solvers import Solution, Status, optimistix_lm
+from ewb_ident.inference.solvers import NULL_LIMIT, Solution, Status, seed_levenberg_marquardt
 from ewb_ident.inference.uncertainty import (
     identifiability_notes,
     parameter_uncertainty,
@@ -189,8 +193,7 @@ def fit(
     start: Mapping[str, float] | None = None,
     integrator: Integrator = EXPONENTIAL,
     max_steps: int = 300,
-    rtol: float = 1e-6,
-    atol: float = 1e-8,
+    tol: float = 1e-8,
 ) -> FitResult:
     """Fit the EWB model to one or several traces by weighted least squares.
 
@@ -216,9 +219,11 @@ def fit(
         How the motor is integrated (motor and chain stages).
     max_steps
         Solver step limit per solve.
-    rtol, atol
-        Solver tolerances on the unconstrained O(1) coordinates (1e-6 is far below any
-        parameter's statistical uncertainty).
+    tol
+        Convergence: the optimum lies within ``sqrt(tol)`` standard errors of the
+        solution, in the metric of the weighted Jacobian (the Gauss-Newton step's
+        predicted decrease of the weighted cost is below ``tol`` times the residual
+        variance; see :func:`~ewb_ident.inference.solvers.levenberg_marquardt`).
 
     Returns
     -------
@@ -239,55 +244,78 @@ def fit(
     st |= dict(start or {})
     # No null direction reaches the solver: at the start, a combination of free
     # parameters the data cannot see (scaled Jacobian numerically singular) has its
-    # dominant parameter held at its start value, and the fit says so. A solve that
-    # still ran out of steps is checked the same way at the point it reached (the
-    # solver wandering along a valley floor the start did not show, e.g. a current
-    # channel too small against its noise to separate R, kb and M); the parameter is
-    # then held at its start value and the fit solved again from the start.
+    # dominant parameter held at its start value, and the fit says so. A solve that did
+    # not converge is checked the same way where it stopped (a valley floor the start
+    # did not show, e.g. a current channel too small against its noise to separate R,
+    # kb and M), and a converged one for the directions its convergence test leaves out
+    # (condition number above NULL_LIMIT); the parameter is then held at its start value
+    # and the fit solved again from the start. A solve that did not converge on a trace
+    # whose piston never passes c has b held at the seed value.
     held: dict[str, float] = {}
     held_notes: list[str] = []
     while True:
         setup, u0, data, sigma = hold_null_directions(
             setup, st, per_trace, dict(fixed or {}), held, held_notes, integrator
         )
-        sol, sigma, data, results, steps = _solve_twice(
-            setup, u0, data, sigma, rtol, atol, max_steps
-        )
-        # Every solve counts, as in ``_finish``: a first solve that ran out of steps in a
-        # flat valley can be followed by a re-weighted one that stops "successfully"
-        # because its steps became tiny, not because it reached an optimum.
-        done = all(s.converged for s in results)
-        if done or len(setup.problem.shared) < 2:
+        sol, sigma, data, results, steps = _solve_twice(setup, u0, data, sigma, tol, max_steps)
+        if len(setup.problem.shared) < 2:
             break
-        if not (
-            hold_one(setup, sol.u, data, st, held, held_notes, "where the solver stopped")
-            or hold_flank_exponent(setup, sol.u, data, held, held_notes)
-        ):
+        # Every solve counts, as in ``_finish``: a first solve that ran out of steps in a
+        # flat valley can be followed by a re-weighted one that stops at a point the
+        # first did not reach.
+        converged = all(s.converged for s in results)
+        # A converged solve controlled every direction its convergence test could see;
+        # the rest (condition number above 1e6) are held like any null direction.
+        limit = NULL_LIMIT if converged else None
+        if hold_one(setup, sol.u, data, st, held, held_notes, "where the solver stopped", limit):
+            continue
+        if converged or not hold_flank_exponent(setup, sol.u, data, held, held_notes):
             break
     if held_notes:
         setup = dataclasses.replace(setup, notes=setup.notes + tuple(held_notes))
     return _finish(setup, sol.u, data, sigma, results, steps, max_steps)
 
 
-def _solve_twice(setup, u0, data, sigma, rtol, atol, max_steps):
+def _solve_twice(setup, u0, data, sigma, tol, max_steps):
     """Solve, re-estimate the noise levels from the residuals, solve again; a solve that
     ran out of steps while still descending gets one more allowance."""
     problem = setup.problem
-    tol = dict(rtol=rtol, atol=atol, max_steps=max_steps)
-    sol = optimistix_lm(problem, u0, data, **tol)
+    sol = _solve(problem, u0, data, tol, max_steps)
     results, steps = [sol], sol.steps
-    r = np.asarray(evaluate(problem, sol.u, data)[0])
+    r = np.asarray(evaluate(problem, sol.u, data, predictions=False)[0])
     if np.all(np.isfinite(r)):
         sigma = _residual_sigma(r, setup.channels, setup.traces, sigma)
         data = setup.data(sigma)
-        sol = optimistix_lm(problem, sol.u, data, **tol)
+        sol = _solve(problem, sol.u, data, tol, max_steps)
         results.append(sol)
         steps += sol.steps
         if sol.status is Status.MAX_STEPS:
-            sol = optimistix_lm(problem, sol.u, data, **tol)
+            sol = _solve(problem, sol.u, data, tol, max_steps)
             results[-1] = sol
             steps += sol.steps
     return sol, sigma, data, results, steps
+
+
+def _solve(problem, u0, data, tol: float, max_steps: int) -> Solution:
+    """Levenberg-Marquardt on the compiled residuals and Jacobian of :func:`evaluate`:
+    identity damping in ``u``, and if that reaches the step limit, Marquardt's damping
+    from the same start (each crawls where the other does not; see
+    :func:`~ewb_ident.inference.solvers.seed_levenberg_marquardt`). The converged one,
+    else the lower cost."""
+
+    def fun_and_jac(u):
+        r, _, J = evaluate(problem, u, data, predictions=False)
+        return r, J
+
+    u0 = np.asarray(u0)
+    sol = seed_levenberg_marquardt(fun_and_jac, u0, max_steps=max_steps, gn_tol=tol)
+    if sol.status is not Status.MAX_STEPS:
+        return sol
+    alt = seed_levenberg_marquardt(fun_and_jac, u0, max_steps=max_steps, gn_tol=tol, marquardt=True)
+    steps = sol.steps + alt.steps
+    if alt.converged or (alt.cost is not None and alt.cost < sol.cost):
+        return dataclasses.replace(alt, steps=steps)
+    return dataclasses.replace(sol, steps=steps)
 
 
 def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResult:
@@ -370,7 +398,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         predictions=tuple(preds),
         u=u,
         problem=problem,
-        data=data,
+        data={k: v for k, v in data.items() if k != "program"},
         stderr_white=dict(zip(names, unc.stderr_white, strict=True)),
     )
 

@@ -11,12 +11,13 @@ from ewb_ident.inference.problem import build_setup, evaluate, to_u, usable
 from ewb_ident.model.params import PARAMS
 
 
-def hold_one(setup, u, data, st, held, notes, where: str) -> bool:
-    """If the scaled Jacobian at ``u`` has a null direction, hold its dominant parameter
-    at its start value (or the base one, if that is unusable), adding it to ``held``
-    and the words to ``notes``; whether one was held."""
-    J = np.asarray(evaluate(setup.problem, u, data)[2])
-    found = _null_direction(J, setup.problem.shared)
+def hold_one(setup, u, data, st, held, notes, where: str, threshold: float | None = None) -> bool:
+    """If the scaled Jacobian at ``u`` has a null direction (a condition number above
+    ``threshold``, default :data:`NULL_CONDITION`), hold its dominant parameter at its
+    start value (or the base one, if that is unusable), adding it to ``held`` and the
+    words to ``notes``; whether one was held."""
+    J = np.asarray(evaluate(setup.problem, u, data, predictions=False)[2])
+    found = _null_direction(J, setup.problem.shared, threshold or NULL_CONDITION)
     if found is None:
         return False
     name, partners, cond = found
@@ -103,7 +104,9 @@ def hold_null_directions(setup, st, per_trace, fixed, held, notes, integrator):
 NULL_CONDITION = 1.0e4
 
 
-def _null_direction(J: np.ndarray, shared: Sequence[str]) -> tuple[str, list[str], float] | None:
+def _null_direction(
+    J: np.ndarray, shared: Sequence[str], threshold: float
+) -> tuple[str, list[str], float] | None:
     """The shared parameter to hold when ``J`` (weighted residuals by ``u``) has a null
     direction: the one with the largest weight in the smallest singular vector, with the
     parameters that make up the direction and the condition number."""
@@ -118,7 +121,7 @@ def _null_direction(J: np.ndarray, shared: Sequence[str]) -> tuple[str, list[str
         return (shared[j], [shared[j]], float("inf")) if j < len(shared) else None
     _, sv, Vt = np.linalg.svd(np.linalg.qr(J / scale, mode="r"))
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
-    if cond < NULL_CONDITION:
+    if cond < threshold:
         return None
     w = np.abs(Vt[-1][: len(shared)])
     if w.size == 0 or w.max() == 0:

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from ewb_ident.data.metrics import ar1_filter
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.chains import (
     autocorr_time,
@@ -468,8 +469,6 @@ def _corr(names, draws) -> tuple[list[str], np.ndarray]:
 
 def _predictive(lp, U, s2, segs, names, draws, samplers, burn, thin, max_draws, seq):
     """Stored draws with predictions, pointwise log-likelihood and replicated data."""
-    from scipy.signal import lfilter
-
     E, M, D = U.shape
     K = max(1, min(M, max_draws // E))
     idx = np.unique(np.linspace(0, M - 1, K).round().astype(int))
@@ -482,7 +481,7 @@ def _predictive(lp, U, s2, segs, names, draws, samplers, burn, thin, max_draws, 
     for j, seg in enumerate(segs):
         innov = rng.standard_normal((E * K, seg.n)) * s[:, j : j + 1]
         innov[:, 0] /= math.sqrt(1.0 - seg.phi**2)
-        eps = lfilter([1.0], [1.0, -seg.phi], innov, axis=1)
+        eps = ar1_filter(innov, seg.phi)
         y_rep[:, i0 : i0 + seg.n] = pred[:, i0 : i0 + seg.n] + seg.sigma_ls * eps
         i0 += seg.n
     lps = [sm.get_log_prob()[burn::thin].reshape(-1)[idx] for sm in samplers]

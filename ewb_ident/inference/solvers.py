@@ -1,13 +1,18 @@
 """The two Levenberg-Marquardt solvers behind one interface: each returns a
-:class:`Solution` with a :class:`Status` code (as optimistix's ``RESULTS``).
+:class:`Solution` with a :class:`Status` code. Both are NumPy loops around compiled
+functions: a solver compiled whole (optimistix's, which the seed model's fits used
+before) is compiled once per problem configuration, 2-3 s per stage and free set on
+the 2-core machine, more than the whole warm fit; the loop costs about 0.1 ms of
+Python per step beside the compiled evaluation.
 
-:func:`optimistix_lm`
-    The seed model's stage and chain fits: optimistix's solver compiled whole, once per
-    problem shape, and reused across traces of that shape.
+:func:`seed_levenberg_marquardt`
+    The seed model's stage and chain fits: one compiled function gives the residuals
+    and their Jacobian; the damped step is solved from the SVD of the column-scaled
+    Jacobian, and convergence is judged in standard errors
+    (``tests/test_fit.py`` checks it reaches the optimum optimistix's solver reaches).
 :func:`levenberg_marquardt`
-    Fits with mechanisms: a NumPy loop around two compiled functions (residuals; with
-    their Jacobian), since compiling a whole solver for every combination of mechanisms
-    costs ten times more than the solve.
+    Fits with mechanisms: two compiled functions (residuals; with their Jacobian), the
+    step from the normal equations, convergence on the relative decrease of the cost.
 """
 
 from __future__ import annotations
@@ -18,9 +23,6 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
-
-from ewb_ident.model.programs import program
 
 
 class Status(enum.Enum):
@@ -59,29 +61,6 @@ class Solution:
     @property
     def converged(self) -> bool:
         return self.status is Status.SUCCESSFUL
-
-
-@program
-def _optimistix_solve(problem, u0, data, rtol, atol, max_steps):
-    """The solution, optimistix's result index and the steps taken."""
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(problem, solver, u0, args=data, max_steps=max_steps, throw=False)
-    return sol.value, sol.result._value, sol.stats["num_steps"]
-
-
-def optimistix_lm(problem, u0, data, *, rtol: float, atol: float, max_steps: int) -> Solution:
-    """Minimise ``sum(problem(u, data)^2)`` with optimistix's Levenberg-Marquardt."""
-    value, result, steps = _optimistix_solve(problem, u0, data, rtol, atol, max_steps)
-    result = int(result)
-    if result == int(optx.RESULTS.successful._value):
-        status, detail = Status.SUCCESSFUL, ""
-    elif result == int(optx.RESULTS.nonlinear_max_steps_reached._value):
-        status, detail = Status.MAX_STEPS, ""
-    else:
-        status = Status.FAILED
-        messages = optx.RESULTS._index_to_message
-        detail = messages[result] if 0 <= result < len(messages) else f"optimistix result {result}"
-    return Solution(value, None, status, int(steps), detail)
 
 
 def levenberg_marquardt(
@@ -158,3 +137,113 @@ def levenberg_marquardt(
             if lam > 1e16:
                 return Solution(u, cost, Status.SUCCESSFUL, step)
     return Solution(u, cost, Status.MAX_STEPS, max_steps)
+
+
+def seed_levenberg_marquardt(
+    fun_and_jac: Callable[[jnp.ndarray], tuple],
+    u0: np.ndarray,
+    *,
+    max_steps: int = 300,
+    gn_tol: float = 1e-8,
+    marquardt: bool = False,
+) -> Solution:
+    """Minimise ``sum(r(u)^2)`` by Levenberg-Marquardt, ``fun_and_jac(u)`` returning the
+    residuals ``r`` and their Jacobian ``J`` (anything after them is ignored).
+
+    Step. The damped step ``-(J^T J + lam s_max^2 I)^-1 J^T r`` (``s_max`` the largest
+    singular value of ``J``), with Nielsen's update of ``lam``: damping the same in
+    every direction of ``u``, whose coordinates are O(1) by construction (as in
+    optimistix's solver). With ``marquardt=True`` each column of ``J`` is scaled to
+    unit norm first (Marquardt's damping ``lam diag(J^T J)``), which moves fast along a
+    parameter whose effect fades (L drifting to 0 at 100 Hz, where identity damping
+    crawls for the step limit) but crawls along some curved valleys that identity
+    damping crosses; :func:`ewb_ident.inference.least_squares.fit` runs the second
+    when the first reaches its step limit. The step is solved from the SVD of ``J``,
+    not the normal equations (which square a condition number of 1e4-1e6 along such
+    valleys); a rejected step costs no new factorisation, and every trial point is
+    evaluated with its Jacobian, kept when the step is taken.
+
+    Convergence: the decrease of ``sum(r^2)`` the undamped Gauss-Newton step predicts
+    is at most ``gn_tol`` times the residual variance ``sum(r^2) / (N - k)``. For
+    weighted residuals that decrease is the squared distance to the optimum in
+    standard errors: "within ``sqrt(gn_tol)`` standard errors of the optimum" whatever
+    the parameters' scales, so neither a step made small by damping nor a slow slide
+    along a valley passes for convergence. Directions with a singular value below
+    1/:data:`NULL_LIMIT` of the largest (a condition number above 1e6) are left out of
+    the test: along them the gradient's rounding error, not the data, sets the
+    prediction, and the fits hold such a direction's parameter
+    (:mod:`ewb_ident.inference.null_directions`). A point from which no step lowers the
+    cost is a minimum to working precision (converged).
+    """
+    u = np.asarray(u0, dtype=float)
+    point = _Linearised.at(fun_and_jac, u, marquardt)
+    if point is None:
+        return Solution(u, float("inf"), Status.NONFINITE, 0)
+    if u.size == 0 or point.near_optimum(gn_tol):
+        return Solution(u, point.cost, Status.SUCCESSFUL, 0)
+    lam, nu = 1e-3, 2.0
+    for step in range(1, max_steps + 1):
+        delta, predicted = point.step(lam)
+        trial = _Linearised.at(fun_and_jac, u + delta, marquardt)
+        rho = (point.cost - trial.cost) / predicted if trial is not None and predicted > 0 else -1
+        if rho > 0:
+            u, point = u + delta, trial
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            if point.near_optimum(gn_tol):
+                return Solution(u, point.cost, Status.SUCCESSFUL, step)
+        else:
+            lam, nu = lam * nu, nu * 2.0
+            if lam > 1e16:  # no step lowers the cost: a minimum to working precision
+                return Solution(u, point.cost, Status.SUCCESSFUL, step)
+    return Solution(u, point.cost, Status.MAX_STEPS, max_steps)
+
+
+#: Directions of ``u`` along which the Jacobian's condition number exceeds this are
+#: null for the convergence test: along them the gradient's rounding error, not the
+#: data, sets the predicted decrease.
+NULL_LIMIT = 1e6
+
+
+@dataclass(frozen=True)
+class _Linearised:
+    """The residuals at a point and the SVD of their column-scaled Jacobian."""
+
+    cost: float
+    n: int
+    scale: np.ndarray
+    s: np.ndarray
+    Vt: np.ndarray
+    b: np.ndarray  # U^T r
+
+    @classmethod
+    def at(cls, fun_and_jac, u: np.ndarray, marquardt: bool) -> _Linearised | None:
+        """The linearisation at ``u`` (columns scaled to unit norm if ``marquardt``, else
+        all by the largest), or ``None`` where the residuals or the Jacobian are not
+        finite (a diverging model, an exponent's parameter far out)."""
+        out = fun_and_jac(jnp.asarray(u))
+        r, J = np.asarray(out[0]), np.asarray(out[1])
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(r @ r)
+            scale = np.linalg.norm(J, axis=0)
+        if not (np.isfinite(cost) and np.all(np.isfinite(J)) and np.all(np.isfinite(scale))):
+            return None
+        top = max(float(np.max(scale, initial=0.0)), 1e-150)
+        scale = np.maximum(scale, 1e-12 * top) if marquardt else np.full_like(scale, top)
+        U, s, Vt = np.linalg.svd(J / scale, full_matrices=False)
+        return cls(cost, r.size, scale, s, Vt, U.T @ r)
+
+    def step(self, lam: float) -> tuple[np.ndarray, float]:
+        """The damped step and the decrease of ``sum(r^2)`` it predicts."""
+        f = self.s / (self.s**2 + lam)
+        delta = -(self.Vt.T @ (f * self.b)) / self.scale
+        keep = (lam / (self.s**2 + lam)) ** 2
+        return delta, float(np.sum(self.b**2 * (1.0 - keep)))
+
+    def near_optimum(self, gn_tol: float) -> bool:
+        """Whether the Gauss-Newton step's predicted decrease is within the tolerance."""
+        if not self.s.size:
+            return True
+        ok = self.s * NULL_LIMIT > float(self.s[0])
+        dof = max(self.n - self.s.size, 1)
+        return float(np.sum(self.b[ok] ** 2)) <= gn_tol * self.cost / dof

@@ -34,6 +34,7 @@ import hashlib
 import os
 import pickle
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -48,6 +49,9 @@ MAX_IN_MEMORY = 256
 MAX_DISK_BYTES = 2 * 1024**3
 #: Hits in memory, hits on disk, compilations, and failed disk reads or writes.
 STATS: dict[str, int] = {"memory": 0, "disk": 0, "compiled": 0, "disk_errors": 0}
+#: Per program (function name): how many were compiled and the seconds it took (tracing,
+#: lowering and XLA's compilation), shown by ``--verbose``.
+COMPILE_TIME: dict[str, tuple[int, float]] = {}
 
 #: The on-disk folder's size is checked after every this many programs written.
 TRIM_EVERY = 32
@@ -77,8 +81,11 @@ def program(fun: Callable) -> Callable:
             def traced(flat):
                 return fun(*eqx.combine(jax.tree_util.tree_unflatten(treedef, flat), static))
 
+            t0 = time.perf_counter()
             exe = jax.jit(traced).lower(leaves).compile()
             STATS["compiled"] += 1
+            n, secs = COMPILE_TIME.get(name, (0, 0.0))
+            COMPILE_TIME[name] = (n + 1, secs + time.perf_counter() - t0)
             _store(key, exe)
             return exe
 
@@ -174,11 +181,37 @@ def describe_stats() -> str:
         return "compiled programs: none used"
     hits = s["memory"] + s["disk"]
     where = cache_folder()
-    return (
+    text = (
         f"compiled programs: {total} calls, {hits} reused ({s['memory']} in memory, "
         f"{s['disk']} from {where or 'disk'}), {s['compiled']} compiled"
         + (f", {s['disk_errors']} disk errors" if s["disk_errors"] else "")
     )
+    costs = sorted(COMPILE_TIME.items(), key=lambda kv: -kv[1][1])
+    if costs:
+        text += f" in {sum(t for _, t in COMPILE_TIME.values()):.1f} s: " + ", ".join(
+            f"{name.rsplit('.', 1)[-1]} {n}x {t:.1f} s" for name, (n, t) in costs
+        )
+    return text
+
+
+# ----------------------------------------------------------------------------- lengths
+
+#: Traces are padded to a multiple of this many samples (the padding weighted zero), so
+#: that traces of similar length share one compiled program.
+PAD = 256
+
+
+def padded_length(n: int) -> int:
+    """``n`` rounded up to a multiple of :data:`PAD`."""
+    return int(-(-n // PAD) * PAD)
+
+
+def pad_to(y, n_pad: int):
+    """``y`` (1-D) extended to ``n_pad`` samples by holding its last value."""
+    import numpy as np
+
+    y = np.asarray(y, dtype=float)
+    return np.concatenate([y, np.full(n_pad - y.size, y[-1])]) if n_pad > y.size else y
 
 
 # ----------------------------------------------------------------------------- keys
@@ -210,7 +243,8 @@ def _environment() -> str:
 
 def _key(name: str, static: Any, treedef: Any, leaves: list) -> str:
     s_leaves, s_def = jax.tree_util.tree_flatten(static)
-    shapes = [(x.shape, str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
+    # dtype.str ("<f8"), not str(dtype): numpy's name lookup costs 5 us a leaf per call.
+    shapes = [(x.shape, x.dtype.str, bool(getattr(x, "weak_type", False))) for x in leaves]
     text = "\n".join(
         (name, repr(s_def), repr(s_leaves), repr(treedef), repr(shapes), _environment())
     )
@@ -229,9 +263,11 @@ def _load(key: str):
         return None
     from jax.experimental import serialize_executable
 
-    _prime_linalg()
     try:
-        blob, in_tree, out_tree = pickle.loads(path.read_bytes())
+        stored = pickle.loads(path.read_bytes())
+        blob, in_tree, out_tree = stored[:3]
+        if len(stored) < 4 or stored[3]:  # calls LAPACK (files before the flag: perhaps)
+            _prime_linalg()
         exe = serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
         os.utime(path)  # recently used
         return exe
@@ -244,9 +280,18 @@ def _load(key: str):
 
 @functools.cache
 def _prime_linalg() -> None:
-    """Compile one small program of each LAPACK routine the solvers use: jaxlib sets up
-    its LAPACK kernels when it first compiles one, and a stored program that calls them
-    crashes the process if loaded before."""
+    """Set up jaxlib's LAPACK kernels before a stored program is loaded: jaxlib does it
+    when it first compiles a LAPACK call, and a stored program that calls one crashes
+    the process (a segmentation fault) if loaded before. jax's own deserialisation of
+    exported programs calls the same initialiser; where a jax release lacks it, one
+    small program of each routine the solvers use is compiled instead (0.6 s)."""
+    try:
+        from jax._src.lax.linalg import initialize_lapack
+    except ImportError:
+        initialize_lapack = None
+    if initialize_lapack is not None:
+        initialize_lapack()
+        return
     import jax.numpy as jnp
 
     def f(a, b):
@@ -269,7 +314,8 @@ def _store(key: str, exe) -> None:
     from ewb_ident.data.outputs import atomic_write
 
     try:
-        data = pickle.dumps(serialize_executable.serialize(exe))
+        uses_lapack = "lapack" in exe.as_text()
+        data = pickle.dumps((*serialize_executable.serialize(exe), uses_lapack))
         folder.mkdir(parents=True, exist_ok=True)
         # Written whole, then renamed: a concurrent reader never sees half a file.
         atomic_write([(folder / f"{key}.bin", lambda tmp: tmp.write_bytes(data))])
