@@ -211,7 +211,7 @@ def seed_predictions(p: EWBParams, theta0_deg, d: dict, n_sub: int, method: str)
 
 
 @program
-def _fit_program(n_sub: tuple[int, ...], method: str, Z, traces):
+def fit_program(n_sub: tuple[int, ...], method: str, Z, traces):
     """Per trace ``k``: weighted residuals of every channel, shape (channels, samples),
     their Jacobian with respect to ``Z[k]`` (forward mode), and the predictions.
 
@@ -245,7 +245,7 @@ def _fit_program(n_sub: tuple[int, ...], method: str, Z, traces):
 
 
 def program_data(problem: StageProblem, tdata: Sequence[dict], sigma, base: dict) -> list[dict]:
-    """What :func:`_fit_program` reads of each trace, padded to
+    """What :func:`fit_program` reads of each trace, padded to
     :func:`~ewb_ident.model.programs.padded_length`: the columns, the weights of the
     fitted channels, the teacher-forcing flags, the fixed values and the free mask."""
     out = []
@@ -303,7 +303,7 @@ def evaluate(problem: StageProblem, u, data: dict, predictions: bool = True):
     channel per trace (``None`` unless ``predictions``), and the Jacobian with respect
     to ``u``, at ``u``.
 
-    One compiled program (:func:`_fit_program`) per set of padded trace lengths serves
+    One compiled program (:func:`fit_program`) per set of padded trace lengths serves
     every stage, free set and weighting: a fit, its start's stage fits and its
     null-direction checks compile nothing after the first.
     """
@@ -311,7 +311,7 @@ def evaluate(problem: StageProblem, u, data: dict, predictions: bool = True):
     pdata = data["program"]
     cols = _columns(problem, len(pdata))
     Z = np.where(cols >= 0, u[np.maximum(cols, 0)] if u.size else 0.0, 0.0)
-    outs = _fit_program(problem.n_sub, problem.method, Z, pdata)
+    outs = fit_program(problem.n_sub, problem.method, Z, pdata)
     rs, Js, preds = [], [], []
     for k, (r, J, pred) in enumerate(outs):
         n = _length(data["traces"][k])

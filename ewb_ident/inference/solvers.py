@@ -64,7 +64,7 @@ class Solution:
 
 
 def levenberg_marquardt(
-    fun: Callable[[jnp.ndarray], jnp.ndarray],
+    fun: Callable[[jnp.ndarray], jnp.ndarray] | None,
     fun_and_jac: Callable[[jnp.ndarray], tuple],
     u0: np.ndarray,
     *,
@@ -75,7 +75,9 @@ def levenberg_marquardt(
     """Minimise ``sum(fun(u)^2)`` by Levenberg-Marquardt: the solver of fits with
     mechanisms.
 
-    ``fun_and_jac(u)`` returns the residuals, their Jacobian and anything else (ignored).
+    ``fun_and_jac(u)`` returns the residuals, their Jacobian and anything else (ignored);
+    ``fun(u)`` the residuals alone, for trial steps (``None``: a trial point is
+    evaluated by ``fun_and_jac``, and its Jacobian kept if the step is taken).
     The loop runs in NumPy around these two compiled functions: compiling a whole solver
     for every combination of mechanisms costs ten times more than the solve. Marquardt's
     diagonal scaling; Nielsen's update of the damping. Converged when the relative
@@ -109,13 +111,17 @@ def levenberg_marquardt(
             lam, nu = lam * nu, nu * 2
             continue
         u_new = u + delta
-        r_new = np.asarray(fun(jnp.asarray(u_new)))
+        if fun is None:  # the trial point with its Jacobian, kept if the step is taken
+            trial = fun_and_jac(jnp.asarray(u_new))
+            r_new = np.asarray(trial[0])
+        else:
+            r_new = np.asarray(fun(jnp.asarray(u_new)))
         with np.errstate(over="ignore", invalid="ignore"):
             cost_new = float(r_new @ r_new)
             predicted = float(-2.0 * g @ delta - delta @ A @ delta)
         rho = (cost - cost_new) / predicted if np.isfinite(predicted) and predicted > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
-            r_j, J_j, _ = fun_and_jac(jnp.asarray(u_new))
+            r_j, J_j, _ = trial if fun is None else fun_and_jac(jnp.asarray(u_new))
             r_j, J_j = np.asarray(r_j), np.asarray(J_j)
             with np.errstate(over="ignore", invalid="ignore"):
                 A_j, g_j = J_j.T @ J_j, J_j.T @ r_j
