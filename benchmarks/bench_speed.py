@@ -4,18 +4,18 @@
 
 Rows (each with its target):
 
-1. warm whole-chain fit against the SciPy peer in the same process
-   (``benchmarks/bench_fit.py``'s comparison: ``least_squares.fit`` after one compiling
-   call, against ``scipy_peer.py``'s LSODA + finite-difference least squares of the same
-   14 parameters and weights; medians);
-2. a cold ``ewb-ident fit`` (fresh process, empty program cache) against the peer's cold
-   command ``python scipy_peer.py``; 3. the same with the cache filled by row 2;
+1. warm whole-chain fit against the SciPy peer in the same process, on issue 12's
+   traces (clean, 4 s at 200 Hz, every channel, from the independent rig
+   ``tests/other_rig.py``: an open-loop apply and a position-controlled one; see
+   ``bench_fit.py``, which also says how the peer is set up);
+2. a cold ``ewb-ident fit`` of each (fresh process, empty program cache) against the
+   peer's cold command; 3. the same with the cache filled by row 2;
 4. ``ewb-ident diagnose`` of a 3 s trace at 200 Hz (the shipped concealed backlash) and
    at 1 kHz (``datasets/position_1khz.csv``), cold and with the cache filled;
 5. the whole-chain posterior to ESS >= 1000 for a, b, c, mu (``ewb-ident sample
-   --min-ess 1000``), cold (fresh process, empty cache) and warm (the same command with
-   the cache filled), and in one Python process: the first call (compiling) and the
-   second (warm);
+   --min-ess 1000``) of ``datasets/steps_200hz.csv``, cold (fresh process, empty cache)
+   and with the cache filled, and in one Python process: the first call (compiling)
+   and the second (warm);
 6. the default test suite is timed by CI (``bash .ci/run``), not here.
 
 Every command runs in a fresh process with ``EWB_IDENT_CACHE`` pointing at a temporary
@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import bench_fit  # noqa: E402
 
-TRACE_FIT = ROOT / "datasets" / "steps_200hz.csv"
+TRACE_FIT = ROOT / "datasets" / "steps_200hz.csv"  # the posterior's
 TRACE_200 = ROOT / "datasets" / "concealed" / "backlash.csv"
 TRACE_1K = ROOT / "datasets" / "position_1khz.csv"
 
@@ -100,7 +100,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "bench_speed.md")
     args = ap.parse_args()
-    lines = [f"machine: {bench_fit._machine()}", ""]
+    lines = [f"machine: {bench_fit.machine()}", ""]
 
     def row(text: str) -> None:
         print(text, flush=True)
@@ -108,17 +108,18 @@ def main() -> None:
 
     row("| row | ewb-ident | peer | ratio or time | target | met |")
     row("|---|---|---|---|---|---|")
-    warm_ours, warm_peer = bench_fit.warm_times(str(TRACE_FIT))
-    r = warm_peer / warm_ours
-    row(f"| warm whole-chain fit ({TRACE_FIT.name}) | {warm_ours:.3f} s | {warm_peer:.2f} s | "
-        f"{r:.0f}x | >= 300x | {'yes' if r >= 300 else 'no'} |")  # fmt: skip
-    cold_peer = bench_fit._run([sys.executable, str(Path(__file__).parent / "scipy_peer.py"),
-                                str(TRACE_FIT)])  # fmt: skip
-    cold, filled = _cold_and_filled(["fit", str(TRACE_FIT)])
-    for label, t, target in (("empty cache", cold, 10), ("cache filled", filled, 25)):
-        r = cold_peer / t
-        row(f"| cold `ewb-ident fit`, {label} | {t:.1f} s | {cold_peer:.1f} s | {r:.2f}x | "
-            f">= {target}x | {'yes' if r >= target else 'no'} |")  # fmt: skip
+    with tempfile.TemporaryDirectory() as folder:
+        for path in bench_fit.issue_traces(Path(folder)):
+            w = bench_fit.warm(path)
+            r = w["peer"] / w["ours"]
+            row(f"| warm whole-chain fit, {path.name} | {w['ours']:.3f} s | {w['peer']:.1f} s | "
+                f"{r:.0f}x | >= 300x | {'yes' if r >= 300 else 'no'} |")  # fmt: skip
+            c = bench_fit.cold(path, w["problem"])
+            for label, key, target in (("empty cache", "empty", 10), ("filled", "filled", 25)):
+                r = c["peer"] / c[key]
+                row(f"| cold `ewb-ident fit` {path.name}, {label} | {c[key]:.2f} s | "
+                    f"{c['peer']:.1f} s | {r:.1f}x | >= {target}x | "
+                    f"{'yes' if r >= target else 'no'} |")  # fmt: skip
     for trace, limit in ((TRACE_200, 15.0), (TRACE_1K, 30.0)):
         cold, filled = _cold_and_filled(["diagnose", str(trace)])
         row(f"| `ewb-ident diagnose` {trace.name}, cold | {cold:.1f} s | | | <= {limit:g} s | "

@@ -1,7 +1,7 @@
 """ewb-ident: fit, quantify and diagnose a physical model of an EWB test rig.
 
 Every public function computes in float64 whatever JAX's global setting
-(:mod:`ewb_ident.model.precision`).
+(:mod:`ewb_ident.model.numerics`).
 
 >>> import ewb_ident as ei
 >>> trace = ei.read_trace("datasets/steps_200hz.csv")

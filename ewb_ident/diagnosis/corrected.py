@@ -25,7 +25,7 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
-from ewb_ident.model.precision import float64
+from ewb_ident.model.numerics import numerics
 
 
 def corrected_of(trace: Trace, chain_fits, data, sigma) -> CorrectedFit | None:
@@ -186,7 +186,7 @@ def mechanism_templates(names: Sequence[str]) -> list[AbstractMechanism]:
     return out
 
 
-@float64
+@numerics
 def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
     """Fit the seed chain augmented by catalog mechanisms, from the voltage.
 

@@ -93,12 +93,12 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
-from ewb_ident.model.precision import float64
+from ewb_ident.model.numerics import numerics
 
 # ----------------------------------------------------------------------------- main
 
 
-@float64
+@numerics
 def diagnose(
     trace: Trace,
     *,

@@ -29,8 +29,8 @@ from ewb_ident.data.trace import Trace
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.model.integrate import simulate_chain
+from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
-from ewb_ident.model.precision import float64
 
 #: The seed's operating point: its open-loop apply, 4 V for 0.25 s from rest (then 0 V),
 #: logged at 200 Hz; the torque is read while the brake holds, at t = 1.0 s.
@@ -174,7 +174,7 @@ def _covariance(result: FitResult, names: Sequence[str]) -> np.ndarray:
     return result.corr[np.ix_(idx, idx)] * np.outer(se, se)
 
 
-@float64
+@numerics
 def compare(
     old: Sequence[Trace],
     new: Sequence[Trace],

@@ -56,9 +56,9 @@ from ewb_ident.inference.uncertainty import (
     saturation_notes,
 )
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
+from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.physics import gap
-from ewb_ident.model.precision import float64
 
 
 def _start_values(
@@ -182,7 +182,7 @@ def _bell_trace(trace: Trace, start: Mapping[str, float], base: EWBParams) -> Tr
     )
 
 
-@float64
+@numerics
 def fit(
     traces: Trace | Sequence[Trace],
     *,

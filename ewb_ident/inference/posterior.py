@@ -81,7 +81,7 @@ from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
 from ewb_ident.inference.problem import FitError
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
-from ewb_ident.model.precision import float64
+from ewb_ident.model.numerics import numerics
 
 
 def _stage_list(stage: str | Sequence[str], traces: Sequence[Trace]) -> tuple[str, ...]:
@@ -113,7 +113,7 @@ def _stage_list(stage: str | Sequence[str], traces: Sequence[Trace]) -> tuple[st
 # ----------------------------------------------------------------------------- sample
 
 
-@float64
+@numerics
 def sample(
     traces: Trace | Sequence[Trace],
     *,
@@ -248,7 +248,7 @@ def _sample(
     return dataclasses.replace(result, timing=run.timing(t_start, t_fit))
 
 
-@float64
+@numerics
 def sample_corrected(
     trace: Trace,
     corrected: Any,

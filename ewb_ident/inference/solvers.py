@@ -156,11 +156,11 @@ def seed_levenberg_marquardt(
     """Minimise ``sum(r(u)^2)`` by Levenberg-Marquardt, ``fun_and_jac(u)`` returning the
     residuals ``r`` and their Jacobian ``J`` (anything after them is ignored).
 
-    Step. The damped step ``-(J^T J + lam s_max^2 I)^-1 J^T r`` (``s_max`` the largest
-    singular value of ``J``), with Nielsen's update of ``lam``: damping the same in
-    every direction of ``u``, whose coordinates are O(1) by construction (as in
-    optimistix's solver). With ``marquardt=True`` each column of ``J`` is scaled to
-    unit norm first (Marquardt's damping ``lam diag(J^T J)``), which moves fast along a
+    Step. The damped step ``-(J^T J + lam I)^-1 J^T r``, with Nielsen's update of
+    ``lam`` from 1: damping the same in every direction of ``u``, whose coordinates are
+    O(1) by construction (as in optimistix's solver). With ``marquardt=True`` each
+    column of ``J`` is scaled to unit norm first (Marquardt's damping
+    ``lam diag(J^T J)``, from 1e-3), which moves fast along a
     parameter whose effect fades (L drifting to 0 at 100 Hz, where identity damping
     crawls for the step limit) but crawls along some curved valleys that identity
     damping crosses; :func:`ewb_ident.inference.least_squares.fit` runs the second
@@ -187,7 +187,10 @@ def seed_levenberg_marquardt(
         return Solution(u, float("inf"), Status.NONFINITE, 0)
     if u.size == 0 or point.near_optimum(gn_tol):
         return Solution(u, point.cost, Status.SUCCESSFUL, 0)
-    lam, nu = 1e-3, 2.0
+    # Identity damping starts at 1 (a step of about one unit of the O(1) coordinates
+    # where the data say little, Gauss-Newton where they say much, as optimistix's
+    # trust region does); Marquardt's, relative to unit columns, at 1e-3.
+    lam, nu = (1e-3 if marquardt else 1.0), 2.0
     for step in range(1, max_steps + 1):
         delta, predicted = point.step(lam)
         trial = _Linearised.at(fun_and_jac, u + delta, marquardt)
@@ -234,8 +237,10 @@ class _Linearised:
             scale = np.linalg.norm(J, axis=0)
         if not (np.isfinite(cost) and np.all(np.isfinite(J)) and np.all(np.isfinite(scale))):
             return None
-        top = max(float(np.max(scale, initial=0.0)), 1e-150)
-        scale = np.maximum(scale, 1e-12 * top) if marquardt else np.full_like(scale, top)
+        if marquardt:
+            scale = np.maximum(scale, 1e-150 + 1e-12 * float(np.max(scale, initial=0.0)))
+        else:
+            scale = np.ones_like(scale)
         U, s, Vt = np.linalg.svd(J / scale, full_matrices=False)
         return cls(cost, r.size, scale, s, Vt, U.T @ r)
 

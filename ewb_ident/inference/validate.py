@@ -29,8 +29,8 @@ from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import Trace, TraceError
 from ewb_ident.model.integrate import simulate_chain
+from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, EWBParams
-from ewb_ident.model.precision import float64
 
 #: Residual RMS up to this many times the sensor noise counts as "at the noise floor".
 NOISE_RATIO = 1.5
@@ -118,7 +118,7 @@ class ValidationResult:
         }
 
 
-@float64
+@numerics
 def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> ValidationResult:
     """Simulate ``params`` on ``trace`` from its voltage and score every recorded channel.
 

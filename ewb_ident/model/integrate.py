@@ -36,9 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import EWBParams
 from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
-from ewb_ident.model.precision import float64
 from ewb_ident.model.programs import program
 
 #: ``tau(state, params) -> N*m``: a load torque on the motor from the state (i, omega,
@@ -233,7 +233,7 @@ def motor_angle_rad(params: EWBParams, voltage_V, dt, theta0_deg) -> jnp.ndarray
     return seed_motor_states(params, voltage_V, dt, theta0_deg, 1, "exponential", None)[:, 2]
 
 
-@float64
+@numerics
 def simulate_motor(
     params: EWBParams,
     voltage_V: ArrayLike,
@@ -307,7 +307,7 @@ def chain_from_theta(
     return {"x_m": x, "force_N": F, "torque_Nm": brake_torque(F, params.mu, r_eff_m)}
 
 
-@float64
+@numerics
 def simulate_chain(
     params: EWBParams,
     voltage_V: ArrayLike,
