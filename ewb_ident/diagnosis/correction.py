@@ -315,9 +315,9 @@ def forward_select(
 
 def with_signals(data: Mapping[str, Any], trace) -> dict[str, Any]:
     """``data`` with the library's signals and scales added (padded like the data)."""
-    from ewb_ident.model.programs import pad_to
+    from ewb_ident.model.programs import on_device, pad_to
 
     n_pad = int(np.asarray(data["t"]).shape[0])
-    sig = {k: jnp.asarray(pad_to(v, n_pad)) for k, v in signals(trace).items()}
-    sc = {k: jnp.asarray(v) for k, v in scales(trace).items()}
+    sig = on_device({k: pad_to(v, n_pad) for k, v in signals(trace).items()})
+    sc = on_device(dict(scales(trace)))
     return dict(data) | {"signals": sig, "scales": sc}

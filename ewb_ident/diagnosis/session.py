@@ -7,7 +7,6 @@ from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 from scipy.special import chdtrc
 
@@ -40,6 +39,7 @@ from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
 from ewb_ident.model.physics import clamp_force
+from ewb_ident.model.programs import on_device
 
 #: A mechanism must lower the BIC by at least this much.
 BIC_THRESHOLD = 10.0
@@ -218,10 +218,7 @@ class Session:
         """The motor stage's angle (degrees) from the logged voltage, baseline values."""
         p = EWBParams(**{k: v[k] for k in EWBParams().as_dict()})
         theta = motor_angle_rad(
-            p,
-            jnp.asarray(self.trace["voltage_V"]),
-            jnp.asarray(self.trace.dt),
-            jnp.asarray(float(v["theta0_deg"])),
+            p, *on_device((self.trace["voltage_V"], self.trace.dt, float(v["theta0_deg"])))
         )
         return np.asarray(theta) * (180.0 / np.pi)
 

@@ -33,7 +33,7 @@ from ewb_ident.inference.uncertainty import serial_sd
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
-from ewb_ident.model.programs import pad_to, padded_length, program
+from ewb_ident.model.programs import on_device, pad_to, padded_length, program
 
 #: Most starting points tried per fit.
 MAX_STARTS = 24
@@ -113,35 +113,37 @@ def make_data(
     n_pad = padded_length(n)
     mask = np.zeros(n_pad)
     mask[:n] = 1.0
-    meas = {c: jnp.asarray(pad_to(trace[c], n_pad)) for c in COLUMNS if trace.has(c)}
+    meas = {c: pad_to(trace[c], n_pad) for c in COLUMNS if trace.has(c)}
     drive = {}
     if x_model is not None:
-        drive["x_model"] = jnp.asarray(pad_to(np.asarray(x_model, dtype=float), n_pad))
+        drive["x_model"] = pad_to(np.asarray(x_model, dtype=float), n_pad)
     elif trace.has("x_m") and x_play_m > 0:
         x_noise = noise_sigma(trace["x_m"])
         x_drive = slow_smooth(trace["x_m"], x_noise, width=5 * x_smooth, fast=x_smooth)
-        drive["x_m"] = jnp.asarray(pad_to(x_drive, n_pad))
+        drive["x_m"] = pad_to(x_drive, n_pad)
     if trace.has("theta_deg"):
         s_th = float(theta_noise) if theta_noise is not None else 0.0
-        drive["theta_deg"] = jnp.asarray(pad_to(slow_smooth(trace["theta_deg"], s_th), n_pad))
+        drive["theta_deg"] = pad_to(slow_smooth(trace["theta_deg"], s_th), n_pad)
     w = {}
     for ch, s in sigma.items():
         s = np.broadcast_to(np.asarray(s, dtype=float), (n,))
-        w[ch] = jnp.asarray(pad_to(1.0 / s, n_pad) * mask)
-    return {
-        "meas": meas,
-        "drive": drive,
-        "w": w,
-        "fixed": {k: jnp.asarray(float(v)) for k, v in fixed.items()},
-        "dt": jnp.asarray(trace.dt),
-        "t": jnp.asarray(np.arange(n_pad) * trace.dt),
-        "r_eff": jnp.asarray(trace.r_eff_m),
-        "omega_ref": jnp.asarray(float(omega_ref)),
-        "x_play": jnp.asarray(float(x_play_m)),
-        # An array, not a Python int: filter_jit would make a plain int static and
-        # recompile for every trace length.
-        "n": jnp.asarray(n),
-    }
+        w[ch] = pad_to(1.0 / s, n_pad) * mask
+    return on_device(
+        {
+            "meas": meas,
+            "drive": drive,
+            "w": w,
+            "fixed": {k: float(v) for k, v in fixed.items()},
+            "dt": trace.dt,
+            "t": np.arange(n_pad) * trace.dt,
+            "r_eff": trace.r_eff_m,
+            "omega_ref": float(omega_ref),
+            "x_play": float(x_play_m),
+            # An array, not a Python int: filter_jit would make a plain int static and
+            # recompile for every trace length.
+            "n": np.asarray(n),
+        }
+    )
 
 
 class AugProblem(eqx.Module):
@@ -210,19 +212,19 @@ def _seed_residuals_and_jacobian(problem: AugProblem, u, data):
     z[cols] = u
     meas = data["meas"]
     n_pad = int(np.asarray(next(iter(meas.values()))).shape[0])
-    zeros = jnp.zeros(n_pad)
+    zeros = np.zeros(n_pad)
     forced = () if problem.stages == ("chain",) else problem.stages
-    pdata = {
-        "meas": {c: meas.get(c, zeros) for c in PROGRAM_COLUMNS},
-        "w": {c: data["w"][c] if c in problem.channels else zeros for c in CHANNELS},
-        # Scalars as float64 arrays, not weakly typed ones, as the seed fits pass them:
-        # the same program then serves both.
-        "forced": {c: _f64(float(s in forced)) for s, c in FORCED_CHANNEL.items()},
-        "dt": _f64(data["dt"]),
-        "r_eff": _f64(data["r_eff"]),
-        "fixed": jnp.asarray([float(data["fixed"][n]) for n in Z_NAMES]),
-        "free": jnp.asarray([float(n in problem.free) for n in Z_NAMES]),
-    }
+    pdata = on_device(
+        {
+            "meas": {c: meas.get(c, zeros) for c in PROGRAM_COLUMNS},
+            "w": {c: data["w"][c] if c in problem.channels else zeros for c in CHANNELS},
+            "forced": {c: float(s in forced) for s, c in FORCED_CHANNEL.items()},
+            "dt": data["dt"],
+            "r_eff": data["r_eff"],
+            "fixed": np.array([float(data["fixed"][n]) for n in Z_NAMES]),
+            "free": np.array([float(n in problem.free) for n in Z_NAMES]),
+        }
+    )
     ((r, J, pred),) = fit_program((problem.n_sub,), "exponential", z[None, :], [pdata])
     rows = [CHANNELS.index(ch) for ch in problem.channels]
     r, J = np.asarray(r)[rows], np.asarray(J)[rows][..., cols]
@@ -230,10 +232,6 @@ def _seed_residuals_and_jacobian(problem: AugProblem, u, data):
         ch for s in problem.stages for ch in STAGE_OUTPUTS[s]
     ]  # fmt: skip
     return r.reshape(-1), J.reshape(-1, len(cols)), {ch: pred[ch] for ch in outputs}
-
-
-def _f64(x) -> jnp.ndarray:
-    return jnp.asarray(x, dtype=jnp.float64)
 
 
 @program
@@ -392,7 +390,7 @@ def fit_mechanisms(
         with np.errstate(over="ignore", invalid="ignore"):
             costs = np.array(
                 [
-                    float(np.sum(np.asarray(residuals(problem, jnp.asarray(u), data)) ** 2))
+                    float(np.sum(np.asarray(residuals(problem, np.asarray(u, float), data)) ** 2))
                     for u in us
                 ]
             )
@@ -442,7 +440,7 @@ LOG_FLOOR = 1e-12
 
 def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
     n = int(data["n"])
-    r, J, pred_all = residuals_and_jacobian(problem, jnp.asarray(u), data)
+    r, J, pred_all = residuals_and_jacobian(problem, np.asarray(u, float), data)
     r, J = np.asarray(r), np.asarray(J)
     rss = float(np.sum(r * r))
     nch = len(problem.channels)
@@ -460,7 +458,7 @@ def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
             infos.append(info)
             names.append(f"{tmpl.variant}.{info.name}")
     stderr, white = _stderr(J, r, n_res, u_np, infos, [(nch, r.size // nch)])
-    p, theta0, mechs = problem.build(jnp.asarray(u), data)
+    p, theta0, mechs = problem.build(np.asarray(u, float), data)
     pred = {ch: np.asarray(v)[:n] for ch, v in pred_all.items()}
     values = {name: float(getattr(p, name)) for name in MODEL_PARAMS}
     values["theta0_deg"] = float(theta0)

@@ -16,7 +16,7 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import Prior, param_info
 from ewb_ident.inference.problem import StageProblem
 from ewb_ident.model.params import ParamInfo
-from ewb_ident.model.programs import program
+from ewb_ident.model.programs import on_device, program
 
 #: The parameters every summary reports (CONTRACTS.md).
 CONTRACT_PARAMS: tuple[str, ...] = ("a", "b", "c", "mu")
@@ -245,7 +245,7 @@ def build(fits: Sequence[FitResult], priors: Mapping[str, Prior], noise_model: s
     lp = _LogPost(
         problems=tuple(f.problem for f in fits),
         datas=tuple(f.data for f in fits),
-        phi=jnp.zeros(sum(len(c) for f in fits for c in f.problem.channels)),
+        phi=on_device(np.zeros(sum(len(c) for f in fits for c in f.problem.channels))),
         slices=tuple(slices),
         n=tuple(
             int(f.data["traces"][k][ch].shape[0])
@@ -282,7 +282,7 @@ def build(fits: Sequence[FitResult], priors: Mapping[str, Prior], noise_model: s
                         measured=meas,
                     )
                 )
-    lp = eqx.tree_at(lambda m: m.phi, lp, jnp.asarray([s.phi for s in segs]))
+    lp = eqx.tree_at(lambda m: m.phi, lp, on_device(np.array([s.phi for s in segs])))
     return lp, tuple(names), u, tuple(segs)
 
 

@@ -23,7 +23,7 @@ from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.physics import brake_torque, clamp_force, gap
 from ewb_ident.model.predict import predict
-from ewb_ident.model.programs import pad_to, padded_length, program
+from ewb_ident.model.programs import on_device, pad_to, padded_length, program
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 
@@ -276,8 +276,7 @@ def program_data(problem: StageProblem, tdata: Sequence[dict], sigma, base: dict
                 "free": np.array([float(n in free) for n in Z_NAMES]),
             }
         )
-    # On the device once, not at every call of the program.
-    return jax.tree_util.tree_map(jnp.asarray, out)
+    return on_device(out)  # once, not at every call of the program
 
 
 def _length(d: dict) -> int:
@@ -333,12 +332,11 @@ def evaluate(problem: StageProblem, u, data: dict, predictions: bool = True):
 
 def trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
     needed = set(channels) | set(stage_inputs(stage)) | {"theta_deg"} & set(trace.channels)
-    d: dict[str, Any] = {c: jnp.asarray(trace[c]) for c in needed if trace.has(c)}
-    d["dt"] = jnp.asarray(trace.dt)
-    d["r_eff_m"] = jnp.asarray(trace.r_eff_m)
-    theta0 = float(np.median(trace["theta_deg"][:5])) if trace.has("theta_deg") else 0.0
-    d["theta0_deg"] = jnp.asarray(theta0)
-    return d
+    d: dict[str, Any] = {c: trace[c] for c in needed if trace.has(c)}
+    d["dt"] = trace.dt
+    d["r_eff_m"] = trace.r_eff_m
+    d["theta0_deg"] = float(np.median(trace["theta_deg"][:5])) if trace.has("theta_deg") else 0.0
+    return on_device(d)
 
 
 def _check_fixed(fixed: Mapping[str, float], free: Iterable[str] | None) -> None:
@@ -438,12 +436,12 @@ class Setup:
     def data(self, sigma: Sequence[Mapping[str, float]]) -> dict:
         """The solver's data pytree with the given per-trace, per-channel noise levels."""
         trs = [
-            d | {"sigma": {c: jnp.asarray(v) for c, v in s.items()}}
+            d | {"sigma": on_device({c: float(v) for c, v in s.items()})}
             for d, s in zip(self.tdata, sigma, strict=True)
         ]
         return {
             "traces": trs,
-            "fixed": {n: jnp.asarray(v) for n, v in self.base.as_dict().items()},
+            "fixed": on_device(self.base.as_dict()),
             "program": program_data(self.problem, self.tdata, sigma, self.base.as_dict()),
         }
 
@@ -505,7 +503,7 @@ def build_setup(traces, stage, free, per_trace, fixed, integrator) -> Setup:
 
 def to_u(
     problem: StageProblem, values: Mapping[str, float], base: EWBParams, tdata
-) -> jnp.ndarray:
+) -> np.ndarray:
     """The unconstrained vector for start ``values`` (SI; ``"name[k]"`` per trace)."""
     defaults = base.as_dict()
     u = [PARAMS[n].to_unconstrained(values.get(n, defaults.get(n))) for n in problem.shared]
@@ -513,4 +511,4 @@ def to_u(
         for n in problem.per_trace:
             v = float(d["theta0_deg"]) if n == "theta0_deg" else defaults[n]
             u.append(PARAMS[n].to_unconstrained(values.get(f"{n}[{k}]", values.get(n, v))))
-    return jnp.asarray(np.array(u, dtype=float))
+    return np.array(u, dtype=float)

@@ -21,7 +21,6 @@ import enum
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import jax.numpy as jnp
 import numpy as np
 
 
@@ -64,8 +63,8 @@ class Solution:
 
 
 def levenberg_marquardt(
-    fun: Callable[[jnp.ndarray], jnp.ndarray] | None,
-    fun_and_jac: Callable[[jnp.ndarray], tuple],
+    fun: Callable[[np.ndarray], np.ndarray] | None,
+    fun_and_jac: Callable[[np.ndarray], tuple],
     u0: np.ndarray,
     *,
     max_steps: int = 200,
@@ -85,7 +84,7 @@ def levenberg_marquardt(
     the gradient vanishes.
     """
     u = np.asarray(u0, dtype=float)
-    r, J, _ = fun_and_jac(jnp.asarray(u))
+    r, J, _ = fun_and_jac(u)
     r, J = np.asarray(r), np.asarray(J)
     cost = float(r @ r)
     if not np.isfinite(cost):
@@ -112,16 +111,16 @@ def levenberg_marquardt(
             continue
         u_new = u + delta
         if fun is None:  # the trial point with its Jacobian, kept if the step is taken
-            trial = fun_and_jac(jnp.asarray(u_new))
+            trial = fun_and_jac(u_new)
             r_new = np.asarray(trial[0])
         else:
-            r_new = np.asarray(fun(jnp.asarray(u_new)))
+            r_new = np.asarray(fun(u_new))
         with np.errstate(over="ignore", invalid="ignore"):
             cost_new = float(r_new @ r_new)
             predicted = float(-2.0 * g @ delta - delta @ A @ delta)
         rho = (cost - cost_new) / predicted if np.isfinite(predicted) and predicted > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
-            r_j, J_j, _ = trial if fun is None else fun_and_jac(jnp.asarray(u_new))
+            r_j, J_j, _ = trial if fun is None else fun_and_jac(u_new)
             r_j, J_j = np.asarray(r_j), np.asarray(J_j)
             with np.errstate(over="ignore", invalid="ignore"):
                 A_j, g_j = J_j.T @ J_j, J_j.T @ r_j
@@ -146,7 +145,7 @@ def levenberg_marquardt(
 
 
 def seed_levenberg_marquardt(
-    fun_and_jac: Callable[[jnp.ndarray], tuple],
+    fun_and_jac: Callable[[np.ndarray], tuple],
     u0: np.ndarray,
     *,
     max_steps: int = 300,
@@ -230,7 +229,7 @@ class _Linearised:
         """The linearisation at ``u`` (columns scaled to unit norm if ``marquardt``, else
         all by the largest), or ``None`` where the residuals or the Jacobian are not
         finite (a diverging model, an exponent's parameter far out)."""
-        out = fun_and_jac(jnp.asarray(u))
+        out = fun_and_jac(u)
         r, J = np.asarray(out[0]), np.asarray(out[1])
         with np.errstate(over="ignore", invalid="ignore"):
             cost = float(r @ r)

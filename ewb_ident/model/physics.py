@@ -6,14 +6,24 @@
 The motor is written in state-space form with state ``s = (i, omega, theta)`` in
 (A, rad/s, rad): ``ds/dt = A s + B_V V + B_tau tau``. Integrating it is the job of
 :mod:`ewb_ident.model.integrate`. Every function here is differentiable and vectorises.
+Given NumPy arrays and numbers only, the stages compute in NumPy (eagerly, JAX would
+compile a small program for every operation and shape, 10-20 ms each); given a JAX
+array or inside a traced program, in JAX.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import ArrayLike
 
 DEG_PER_RAD = 180.0 / jnp.pi
+
+
+def _xp(*args):
+    """JAX's NumPy if any argument is a JAX array (or a tracer), else NumPy."""
+    return jnp if any(isinstance(a, jax.Array) for a in args) else np
 
 
 def motor_matrices(R, L, kb, kT, M, v) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
@@ -64,7 +74,7 @@ def gap(theta_deg: ArrayLike, p2: ArrayLike, p1: ArrayLike, p0: ArrayLike) -> jn
     -------
     Piston displacement x, m (negative while the pads have not closed the gap).
     """
-    theta_deg = jnp.asarray(theta_deg)
+    theta_deg = _xp(theta_deg, p2, p1, p0).asarray(theta_deg)
     return (p2 * theta_deg + p1) * theta_deg + p0
 
 
@@ -90,9 +100,10 @@ def clamp_force(x: ArrayLike, F_rt: ArrayLike, a: ArrayLike, b: ArrayLike, c: Ar
     -------
     Clamping force, N.
     """
-    u = (jnp.asarray(x) - c) / a
+    xp = _xp(x, F_rt, a, b, c)
+    u = (xp.asarray(x) - c) / a
     # |u|^(2b) = exp(b log(u^2)); the floor keeps the gradient in b finite at x = c.
-    power = jnp.exp(b * jnp.log(u * u + 1e-300))
+    power = xp.exp(b * xp.log(u * u + 1e-300))
     return F_rt / (1.0 + power)
 
 
@@ -112,4 +123,4 @@ def brake_torque(force_N: ArrayLike, mu: ArrayLike, r_eff_m: ArrayLike) -> jnp.n
     -------
     Brake torque, N*m (two pads).
     """
-    return 2.0 * mu * jnp.asarray(force_N) * r_eff_m
+    return 2.0 * mu * _xp(force_N, mu, r_eff_m).asarray(force_N) * r_eff_m

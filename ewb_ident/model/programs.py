@@ -194,6 +194,23 @@ def describe_stats() -> str:
     return text
 
 
+def on_device(tree):
+    """``tree``'s numbers and arrays as float64 (or integer) device arrays, without the
+    small program ``jnp.asarray`` compiles for every new shape (10-20 ms each; a
+    diagnosis made some fifty of them in every run). Python floats become float64
+    arrays, not weakly typed ones, so programs see the same argument types whoever
+    prepared their data."""
+    import numpy as np
+
+    def leaf(x):
+        if isinstance(x, jax.Array):
+            return x
+        arr = np.asarray(x)
+        return jax.device_put(arr.astype(float) if arr.dtype.kind in "fb" else arr)
+
+    return jax.tree_util.tree_map(leaf, tree)
+
+
 # ----------------------------------------------------------------------------- lengths
 
 #: Traces are padded to a multiple of this many samples (the padding weighted zero), so
