@@ -218,12 +218,13 @@ def fit(
     integrator
         How the motor is integrated (motor and chain stages).
     max_steps
-        Solver step limit per solve.
+        Solver step limit per solve (for each of its two dampings: uniform, then
+        Marquardt's if the first reaches it).
     tol
         Convergence: the optimum lies within ``sqrt(tol)`` standard errors of the
         solution, in the metric of the weighted Jacobian (the Gauss-Newton step's
         predicted decrease of the weighted cost is below ``tol`` times the residual
-        variance; see :func:`~ewb_ident.inference.solvers.levenberg_marquardt`).
+        variance; see :func:`~ewb_ident.inference.solvers.seed_levenberg_marquardt`).
 
     Returns
     -------

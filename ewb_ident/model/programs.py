@@ -195,7 +195,7 @@ def describe_stats() -> str:
 
 
 def on_device(tree):
-    """``tree``'s numbers and arrays as float64 (or integer) device arrays, without the
+    """``tree``'s numbers and arrays as device arrays (floats as float64), without the
     small program ``jnp.asarray`` compiles for every new shape (10-20 ms each; a
     diagnosis made some fifty of them in every run). Python floats become float64
     arrays, not weakly typed ones, so programs see the same argument types whoever
@@ -206,7 +206,7 @@ def on_device(tree):
         if isinstance(x, jax.Array):
             return x
         arr = np.asarray(x)
-        return jax.device_put(arr.astype(float) if arr.dtype.kind in "fb" else arr)
+        return jax.device_put(arr.astype(float) if arr.dtype.kind == "f" else arr)
 
     return jax.tree_util.tree_map(leaf, tree)
 
