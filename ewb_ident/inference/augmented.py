@@ -347,8 +347,10 @@ def fit_mechanisms(
         (default: all); a mechanism fitted before needs only its fitted values.
     alt_starts
         Other starting values of (some) free base parameters: the solver also runs from
-        the best starting point built on each (e.g. nominal motor values, when the
-        baseline's have compensated for the missing physics and sit in another valley).
+        the best starting points built on each (e.g. nominal motor values, when the
+        baseline's have compensated for the missing physics and sit in another valley),
+        unless a fit from the best starting points overall has converged to the noise
+        (weighted cost at most the number of residuals).
     max_steps
         Solver step limit per start.
     n_best
@@ -399,12 +401,23 @@ def fit_mechanisms(
     costs = np.where(np.isfinite(costs), costs, np.inf)
     ranked = [int(i) for i in np.argsort(costs)]
     order = ranked[: max(1, n_best)]
+    n_first = len(order)
     group = np.asarray(group)
     for g in range(1, len(bases)):  # the best starts of each alternative too
         order += [i for i in ranked if group[i] == g and i not in order][: max(1, n_best)]
+    # Residuals that count (nonzero weight): a converged fit with a cost no larger (reduced
+    # chi-square at most 1 under the fit's noise weights) explains the data to the noise,
+    # and the alternatives' starts, there for a fit caught in another valley, are not run.
+    n_res = sum(int(np.count_nonzero(np.asarray(data["w"][ch]))) for ch in problem.channels)
 
     best = None
-    for i in order:
+    run = set()
+    for k, i in enumerate(order):
+        if k >= n_first and best is not None and best.converged and best.cost <= n_res:
+            break
+        if us[i].tobytes() in run:  # two combinations of starts that coincide
+            continue
+        run.add(us[i].tobytes())
         sol = levenberg_marquardt(
             None,
             lambda u: residuals_and_jacobian(problem, u, data),
