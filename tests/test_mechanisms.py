@@ -397,6 +397,40 @@ def test_fit_recovers_a_mechanism_parameter_from_a_noise_free_stage():
     assert f.rss < 1e-8 * f.n
 
 
+def test_alternative_starts_run_only_while_no_fit_is_at_the_noise(monkeypatch):
+    """The solver runs from an alternative's best start unless a fit from the best starts
+    overall converged with a weighted cost at most the number of residuals; a start that
+    coincides with one already run is never run twice."""
+    from ewb_ident.inference import augmented
+
+    starts = []
+    solve = augmented.levenberg_marquardt
+
+    def counted(fun, fun_and_jac, u0, **kw):
+        starts.append(np.array(u0))
+        return solve(fun, fun_and_jac, u0, **kw)
+
+    monkeypatch.setattr(augmented, "levenberg_marquardt", counted)
+    trace, _ = rig.simulate_rig(sample_rate_hz=200.0, effects=[rig.Backlash(beta_deg=3.3)])
+    fixed = BASE.as_dict() | {"theta0_deg": 0.0}
+    other = {"p1": 1.3 * fixed["p1"]}
+
+    def fit(sigma_m, alt):
+        starts.clear()
+        d = make_data(trace, {"x_m": sigma_m}, fixed)
+        free = ("p2", "p1", "p0")
+        return fit_mechanisms(d, ("gap",), free, (Backlash(),), ("x_m",), alt_starts=alt)
+
+    noise = float(np.std(np.diff(trace["x_m"]))) / math.sqrt(2.0)
+    f = fit(2.0 * noise, [other])  # at the noise: the alternative is not needed
+    assert f.converged and f.rss <= f.n and len(starts) == 2
+    f = fit(0.1 * noise, [other])  # ten times the noise: it is run too
+    assert f.rss > f.n and len(starts) == 4  # the alternative's two best starts
+    assert all(s[1] != 0.0 for s in starts[2:]) and all(s[1] == 0.0 for s in starts[:2])
+    fit(0.1 * noise, [{"p1": fixed["p1"]}])  # the base's own starts again
+    assert len(starts) == len({s.tobytes() for s in starts}) < 4
+
+
 def test_levenberg_marquardt_solves_a_linear_problem_in_one_step():
     _, run = clean(sample_rate_hz=200.0)
     d = data_for(run.trace)
