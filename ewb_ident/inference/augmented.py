@@ -388,14 +388,13 @@ def fit_mechanisms(
             us.append(u)
             group.append(g)
     us = np.array(us, dtype=float)
+    # Each start's residuals and Jacobian: the cost ranks the starts, and the solver's
+    # first evaluation from a start is the one made here.
+    screened = {}
     if len(us) > 1:
+        screened = {i: residuals_and_jacobian(problem, us[i], data) for i in range(len(us))}
         with np.errstate(over="ignore", invalid="ignore"):
-            costs = np.array(
-                [
-                    float(np.sum(np.asarray(residuals(problem, np.asarray(u, float), data)) ** 2))
-                    for u in us
-                ]
-            )
+            costs = np.array([float(np.sum(np.asarray(screened[i][0]) ** 2)) for i in screened])
     else:
         costs = np.zeros(1)
     costs = np.where(np.isfinite(costs), costs, np.inf)
@@ -409,6 +408,7 @@ def fit_mechanisms(
     # chi-square at most 1 under the fit's noise weights) explains the data to the noise,
     # and the alternatives' starts, there for a fit caught in another valley, are not run.
     n_res = sum(int(np.count_nonzero(np.asarray(data["w"][ch]))) for ch in problem.channels)
+    screened = {i: screened[i] for i in order if i in screened}
 
     best = None
     run = set()
@@ -418,12 +418,12 @@ def fit_mechanisms(
         if us[i].tobytes() in run:  # two combinations of starts that coincide
             continue
         run.add(us[i].tobytes())
-        sol = levenberg_marquardt(
-            None,
-            lambda u: residuals_and_jacobian(problem, u, data),
-            us[i],
-            max_steps=max_steps,
-        )
+        first = [screened[i]] if i in screened else []
+
+        def fun_and_jac(u, first=first):
+            return first.pop() if first else residuals_and_jacobian(problem, u, data)
+
+        sol = levenberg_marquardt(None, fun_and_jac, us[i], max_steps=max_steps)
         if not np.isfinite(sol.cost):
             continue
         if best is None or sol.cost < best.cost:
