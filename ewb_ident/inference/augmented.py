@@ -431,7 +431,7 @@ def fit_mechanisms(
     if best is None:  # every start failed: keep the best start point
         i = int(order[0])
         best = Solution(us[i], float(costs[i]), Status.FAILED, 0)
-    return _result(problem, best.u, data, best.converged, mechs)
+    return _result(problem, best.u, data, best.converged, mechs, best.at)
 
 
 def clipped_to_u(info, value: float) -> float:
@@ -451,9 +451,13 @@ def clipped_to_u(info, value: float) -> float:
 LOG_FLOOR = 1e-12
 
 
-def _result(problem: AugProblem, u, data, ok, templates) -> AugFit:
+def _result(problem: AugProblem, u, data, ok, templates, at=None) -> AugFit:
+    """The fit at ``u``; ``at``: the residuals, Jacobian and predictions there if the
+    solver kept them."""
     n = int(data["n"])
-    r, J, pred_all = residuals_and_jacobian(problem, np.asarray(u, float), data)
+    if at is None:
+        at = residuals_and_jacobian(problem, np.asarray(u, float), data)
+    r, J, pred_all = at
     r, J = np.asarray(r), np.asarray(J)
     rss = float(np.sum(r * r))
     nch = len(problem.channels)

@@ -49,6 +49,9 @@ class Solution:
         Steps taken.
     detail
         The solver's own words for a failure, else ``""``.
+    at
+        What ``fun_and_jac`` returned at ``u``, where the solver keeps it
+        (:func:`levenberg_marquardt`), else ``None``.
     """
 
     u: np.ndarray
@@ -56,6 +59,7 @@ class Solution:
     status: Status
     steps: int
     detail: str = ""
+    at: tuple | None = None
 
     @property
     def converged(self) -> bool:
@@ -74,7 +78,8 @@ def levenberg_marquardt(
     """Minimise ``sum(fun(u)^2)`` by Levenberg-Marquardt: the solver of fits with
     mechanisms.
 
-    ``fun_and_jac(u)`` returns the residuals, their Jacobian and anything else (ignored);
+    ``fun_and_jac(u)`` returns the residuals, their Jacobian and anything else (its
+    return at the solution is kept, ``Solution.at``);
     ``fun(u)`` the residuals alone, for trial steps (``None``: a trial point is
     evaluated by ``fun_and_jac``, and its Jacobian kept if the step is taken).
     The loop runs in NumPy around these two compiled functions: compiling a whole solver
@@ -84,8 +89,8 @@ def levenberg_marquardt(
     the gradient vanishes.
     """
     u = np.asarray(u0, dtype=float)
-    r, J, _ = fun_and_jac(u)
-    r, J = np.asarray(r), np.asarray(J)
+    at = fun_and_jac(u)
+    r, J = np.asarray(at[0]), np.asarray(at[1])
     cost = float(r @ r)
     if not np.isfinite(cost):
         return Solution(u, float("inf"), Status.NONFINITE, 0)
@@ -100,10 +105,10 @@ def levenberg_marquardt(
     nu = 2.0
     for step in range(1, max_steps + 1):
         if A.size == 0:
-            return Solution(u, cost, Status.SUCCESSFUL, step)
+            return Solution(u, cost, Status.SUCCESSFUL, step, at=at)
         D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
         if float(np.max(np.abs(g) / np.sqrt(D))) <= 1e-10 * max(np.sqrt(cost), 1e-300):
-            return Solution(u, cost, Status.SUCCESSFUL, step)
+            return Solution(u, cost, Status.SUCCESSFUL, step, at=at)
         try:
             delta = np.linalg.solve(A + lam * np.diag(D), -g)
         except np.linalg.LinAlgError:
@@ -120,8 +125,8 @@ def levenberg_marquardt(
             predicted = float(-2.0 * g @ delta - delta @ A @ delta)
         rho = (cost - cost_new) / predicted if np.isfinite(predicted) and predicted > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
-            r_j, J_j, _ = trial if fun is None else fun_and_jac(u_new)
-            r_j, J_j = np.asarray(r_j), np.asarray(J_j)
+            at_new = trial if fun is None else fun_and_jac(u_new)
+            r_j, J_j = np.asarray(at_new[0]), np.asarray(at_new[1])
             with np.errstate(over="ignore", invalid="ignore"):
                 A_j, g_j = J_j.T @ J_j, J_j.T @ r_j
             # A step to where the model has no slope, or one so steep that J^T J
@@ -131,17 +136,17 @@ def levenberg_marquardt(
                 continue
             small = cost - cost_new <= rtol * cost
             tiny = np.linalg.norm(delta) <= xtol * (np.linalg.norm(u) + xtol)
-            u, cost = u_new, cost_new
+            u, cost, at = u_new, cost_new, at_new
             r, J, A, g = r_j, J_j, A_j, g_j
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small or tiny:
-                return Solution(u, cost, Status.SUCCESSFUL, step)
+                return Solution(u, cost, Status.SUCCESSFUL, step, at=at)
         else:
             lam, nu = lam * nu, nu * 2.0
             if lam > 1e16:
-                return Solution(u, cost, Status.SUCCESSFUL, step)
-    return Solution(u, cost, Status.MAX_STEPS, max_steps)
+                return Solution(u, cost, Status.SUCCESSFUL, step, at=at)
+    return Solution(u, cost, Status.MAX_STEPS, max_steps, at=at)
 
 
 def seed_levenberg_marquardt(
