@@ -11,6 +11,11 @@ from ewb_ident.model import programs
 
 jax.config.update("jax_enable_x64", True)
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # pytest-xdist runs a process per core already: a diagnosis's fits run in the calling
+    # thread (threads of their own would only contend with the other workers).
+    os.environ.setdefault("EWB_IDENT_THREADS", "1")
+
 
 @pytest.fixture(autouse=True, scope="session")
 def _session_compilation_cache(tmp_path_factory):

@@ -1,6 +1,7 @@
 """The command line: contract files, readable summaries, exit code 2 on bad input."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -99,6 +100,22 @@ def test_bad_trace_gives_one_line_exit_2_and_no_output(tmp_path):
     assert len(lines) == 1 and "Traceback" not in proc.stderr
     assert "bad.csv: column 'time_s', row 11" in lines[0]
     assert not out_dir.exists() or not any(out_dir.iterdir())
+
+
+def test_a_thread_count_that_is_not_a_number_exits_2_before_any_work(tmp_path):
+    out_dir = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ewb_ident", "diagnose", str(DATA / "concealed" / "stiction.csv"),
+         "--out", str(out_dir)],
+        capture_output=True, text=True,
+        env=dict(os.environ, EWB_IDENT_THREADS="all"),
+    )  # fmt: skip
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == (
+        "error: EWB_IDENT_THREADS='all' is not a whole number; set it to the number of "
+        "threads to use (1: none besides the calling thread), or unset it"
+    )
+    assert not out_dir.exists()
 
 
 def test_missing_file_is_a_clear_error(tmp_path):

@@ -455,3 +455,16 @@ def test_two_effects_that_show_in_the_chain_only_together_are_both_named():
     trace, *_ = da.make_case(7, ("force_hysteresis", "backlash"), seed=20261227, widen=True)
     res = diagnose(trace)
     assert {f.effect for f in res.findings} == {"force_hysteresis", "backlash"}, res.summary()
+
+
+def test_the_candidates_fitted_side_by_side_give_the_loops_diagnosis(monkeypatch):
+    """A diagnosis fits its candidates (and each fit's starts) in threads: the outcome is
+    the one-thread run's, number for number."""
+    trace = make_trace("sensor_delay")
+    monkeypatch.setenv("EWB_IDENT_THREADS", "1")
+    one = diagnose(trace, catalog=["sensor_delay", "sensor_offset", "backlash"])
+    monkeypatch.setenv("EWB_IDENT_THREADS", "2")
+    two = diagnose(trace, catalog=["sensor_delay", "sensor_offset", "backlash"])
+    a, b = json.loads(json_text(one.to_json())), json.loads(json_text(two.to_json()))
+    a.pop("timings_s"), b.pop("timings_s")
+    assert a == b and [f.effect for f in two.findings] == ["sensor_delay"]

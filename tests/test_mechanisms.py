@@ -486,6 +486,41 @@ def test_levenberg_marquardt_is_not_stalled_by_heavy_weights():
     np.testing.assert_allclose(sol.u, np.linalg.lstsq(X, y, rcond=None)[0], rtol=1e-6)
 
 
+def _valley(e: float):
+    """Rosenbrock's valley in noise units: ``100 (u1 - u0^2)`` fixes a combination, and
+    ``e (1 - u0)`` tells where along the valley the optimum (1, 1) is, to ``1/e``."""
+
+    def fun_and_jac(u):
+        r = np.array([100.0 * (u[1] - u[0] ** 2), e * (1.0 - u[0])])
+        return r, np.array([[-200.0 * u[0], 100.0], [-e, 0.0]]), None
+
+    return fun_and_jac
+
+
+@pytest.mark.parametrize("e", [0.1, 0.3])
+def test_levenberg_marquardt_ends_a_slide_worth_under_one_noise_unit(e):
+    """Along a weakly determined valley each step gains little; with ``stall`` the solver
+    stops once ten steps gained under ``stall`` and the optimum is within one standard
+    error (cost within 1 of the optimum's 0), instead of sliding for hundreds of steps."""
+    from ewb_ident.inference.solvers import levenberg_marquardt
+
+    u0 = np.array([-1.2, 1.0])
+    slide = levenberg_marquardt(None, _valley(e), u0, max_steps=500)
+    assert slide.converged and slide.steps > 100 and slide.cost < 1e-20
+    stop = levenberg_marquardt(None, _valley(e), u0, max_steps=500, stall=0.1)
+    assert stop.converged and stop.steps < 20 and 0.0 < stop.cost < 1.0
+    assert abs(stop.u[0] - 1.0) < 2.0 / e  # where along the valley: within its error
+
+
+@pytest.mark.parametrize("e", [10.0, 30.0])
+def test_levenberg_marquardt_with_stall_still_reaches_a_determined_optimum(e):
+    from ewb_ident.inference.solvers import levenberg_marquardt
+
+    sol = levenberg_marquardt(None, _valley(e), np.array([-1.2, 1.0]), stall=0.1)
+    assert sol.converged
+    np.testing.assert_allclose(sol.u, [1.0, 1.0], atol=1e-9)
+
+
 def test_levenberg_marquardt_refuses_a_step_where_jtj_overflows():
     # Was: "RuntimeWarning: overflow encountered in matmul" (J^T J of a Jacobian of 1e200
     # after a step that lowered the cost; a diagnosis of a 2 s closed-loop trace with a

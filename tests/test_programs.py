@@ -106,3 +106,40 @@ def test_without_a_folder_programs_stay_in_memory(tmp_path):
         assert not list(tmp_path.iterdir())
     finally:
         programs.set_cache_folder(before)
+
+
+def test_callers_in_several_threads_compile_a_new_program_once(folder):
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    x = jnp.linspace(0.0, 1.0, 11)
+    m = _Scaled(5.0, jnp.asarray(0.25))
+    together = threading.Barrier(4)
+
+    def call(k):
+        together.wait()
+        return _apply(m, x + k, 2)
+
+    c0 = _counts()
+    with ThreadPoolExecutor(4) as pool:
+        outs = list(pool.map(call, range(4)))
+    c1 = _counts()
+    assert c1["compiled"] - c0["compiled"] == 1 and c1["memory"] - c0["memory"] == 3
+    for k, out in enumerate(outs):
+        np.testing.assert_allclose(out["y"], _plain(m, x + k, 2)["y"], rtol=1e-14)
+
+
+def test_parallel_map_keeps_order_and_the_callers_precision(monkeypatch):
+    monkeypatch.setenv("EWB_IDENT_THREADS", "3")
+    assert programs.threads() == 3
+    assert programs.parallel_map(lambda k: k * k, range(5)) == [0, 1, 4, 9, 16]
+    for x64, dtype in ((True, jnp.float64), (False, jnp.float32)):
+        with jax.enable_x64(x64):
+            got = programs.parallel_map(lambda _: jnp.zeros(1).dtype, range(3))
+        assert got == [dtype] * 3
+
+
+def test_a_thread_count_that_is_not_a_number_is_refused(monkeypatch):
+    monkeypatch.setenv("EWB_IDENT_THREADS", "two")
+    with pytest.raises(ValueError, match="EWB_IDENT_THREADS='two' is not a whole number"):
+        programs.parallel_map(abs, [1, 2])

@@ -89,5 +89,12 @@ def main() -> None:
         from ewb_ident.model.programs import set_cache_folder
 
         set_cache_folder(cache)
+    from ewb_ident.model.programs import threads
+
+    try:
+        threads()  # checked before any work starts
+    except ValueError as err:
+        sys.stderr.write(f"error: {err}\n")
+        raise SystemExit(2) from None
     app()
 

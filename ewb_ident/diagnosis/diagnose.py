@@ -48,6 +48,7 @@ and were set on rig settings other than those the accuracy study measures on.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -94,6 +95,7 @@ from ewb_ident.inference.augmented import (
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.model.numerics import numerics
+from ewb_ident.model.programs import parallel_map
 
 # ----------------------------------------------------------------------------- main
 
@@ -272,14 +274,17 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
     for rnd in range(1, max_mechanisms + 1):
         # Nothing located: only the screened mechanisms are tried (see ``_try``).
         done = {m.variant for m in work.selected}
-        results = []
-        for tmpl in pool:
-            if tmpl.variant in done:
-                continue
-            say(f"round {rnd}: trying {tmpl.variant}")
-            tried = _try(ses, tmpl, work.selected, still, rnd, bic_threshold)
-            if tried is not None:
-                results.append(tried)
+        todo = [tmpl for tmpl in pool if tmpl.variant not in done]
+        say(f"round {rnd}: trying {', '.join(t.variant for t in todo)}")
+        # The candidates are fitted side by side (one compiles while another fits);
+        # each fit depends only on the round's start, so the results are the loop's.
+        tried = parallel_map(
+            functools.partial(
+                _try, ses, selected=work.selected, still=still, rnd=rnd, bic_threshold=bic_threshold
+            ),
+            todo,
+        )
+        results = [t for t in tried if t is not None]
         _, best = _best(results)
         # The chosen form's family: a flexible form in its place when the trace shows it
         # (with nothing supported, the forms of those held back for a partial share).

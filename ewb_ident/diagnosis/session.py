@@ -3,8 +3,10 @@ fits (cached), the augmented fits and their evidence (BIC with AR(1)-effective N
 
 from __future__ import annotations
 
+import threading
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
@@ -122,6 +124,10 @@ class Session:
         self.rounded = {ch for ch in self.cols if coarsely_rounded(trace[ch])}
         self.labels = phase_labels(trace)
         self.cache: dict[tuple, AugFit] = {}
+        # Fits under way (a diagnosis tries its candidates side by side): a second
+        # caller of the same fit waits for the first.
+        self._pending: dict[tuple, Future] = {}
+        self._lock = threading.Lock()
         self.ctx = self._facts()
 
     def _facts(self) -> dict[str, Any]:
@@ -264,35 +270,54 @@ class Session:
         mechs: Sequence[AbstractMechanism],
         explore: Sequence[bool] | None = None,
     ) -> AugFit:
+        """The fit of ``stages`` with ``mechs`` (:func:`fit_mechanisms`), made once per
+        session; callers in other threads that ask for it meanwhile wait for it."""
         stages = stage_order(stages)
         key = _key(stages, mechs)
-        if key not in self.cache:
-            free = self.free_of(stages)
-            alt = []
-            if mechs and "motor" in stages:
-                # A baseline motor fitted without the missing physics has compensated for
-                # it (and a closed-loop trace lets such errors grow without bound): also
-                # start from the nominal motor.
-                nominal = EWBParams().as_dict() | {"theta0_deg": self.theta0_measured}
-                alt.append(
-                    {
-                        n: nominal[n]
-                        for n in free
-                        if n in nominal and n in (*MOTOR_PARAMS, "theta0_deg")
-                    }
-                )
-            self.cache[key] = fit_mechanisms(
-                self.data,
-                stages,
-                free,
-                tuple(mechs),
-                self.channels_of(stages),
-                start={n: self.values[n] for n in free},
-                ctx=self.ctx,
-                explore=explore,
-                alt_starts=alt,
+        with self._lock:
+            done = self.cache.get(key)
+            pending = self._pending.get(key) if done is None else None
+            if done is None and pending is None:
+                self._pending[key] = mine = Future()
+        if done is not None:
+            return done
+        if pending is not None:
+            return pending.result()
+        try:
+            f = self._fit(stages, mechs, explore)
+        except BaseException as err:
+            with self._lock:
+                del self._pending[key]
+            mine.set_exception(err)
+            raise
+        with self._lock:
+            self.cache[key] = f
+            del self._pending[key]
+        mine.set_result(f)
+        return f
+
+    def _fit(self, stages, mechs, explore) -> AugFit:
+        free = self.free_of(stages)
+        alt = []
+        if mechs and "motor" in stages:
+            # A baseline motor fitted without the missing physics has compensated for
+            # it (and a closed-loop trace lets such errors grow without bound): also
+            # start from the nominal motor.
+            nominal = EWBParams().as_dict() | {"theta0_deg": self.theta0_measured}
+            alt.append(
+                {n: nominal[n] for n in free if n in nominal and n in (*MOTOR_PARAMS, "theta0_deg")}
             )
-        return self.cache[key]
+        return fit_mechanisms(
+            self.data,
+            stages,
+            free,
+            tuple(mechs),
+            self.channels_of(stages),
+            start={n: self.values[n] for n in free},
+            ctx=self.ctx,
+            explore=explore,
+            alt_starts=alt,
+        )
 
     def check(self, stage: str, f: AugFit) -> list[StageCheck]:
         inp = STAGE_COLUMNS[stage][0] if stage in STAGE_COLUMNS else None

@@ -33,10 +33,14 @@ from ewb_ident.inference.uncertainty import serial_sd
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
-from ewb_ident.model.programs import on_device, pad_to, padded_length, program
+from ewb_ident.model.programs import on_device, pad_to, padded_length, parallel_map, program
 
 #: Most starting points tried per fit.
 MAX_STARTS = 24
+#: A fit has converged when its last steps lowered the cost (a chi-square: residuals in
+#: units of their noise) by less than this together, with the optimum of its linearised
+#: model within one standard error (:func:`ewb_ident.inference.solvers.levenberg_marquardt`).
+STALL = 0.1
 #: Columns a fit may read.
 COLUMNS = (
     "voltage_V",
@@ -392,7 +396,8 @@ def fit_mechanisms(
     # first evaluation from a start is the one made here.
     screened = {}
     if len(us) > 1:
-        screened = {i: residuals_and_jacobian(problem, us[i], data) for i in range(len(us))}
+        evals = parallel_map(lambda u: residuals_and_jacobian(problem, u, data), us)
+        screened = dict(enumerate(evals))
         with np.errstate(over="ignore", invalid="ignore"):
             costs = np.array([float(np.sum(np.asarray(screened[i][0]) ** 2)) for i in screened])
     else:
@@ -410,24 +415,35 @@ def fit_mechanisms(
     n_res = sum(int(np.count_nonzero(np.asarray(data["w"][ch]))) for ch in problem.channels)
     screened = {i: screened[i] for i in order if i in screened}
 
-    best = None
-    run = set()
-    for k, i in enumerate(order):
-        if k >= n_first and best is not None and best.converged and best.cost <= n_res:
-            break
-        if us[i].tobytes() in run:  # two combinations of starts that coincide
-            continue
-        run.add(us[i].tobytes())
+    # The solver runs from the best starts overall side by side, then from each
+    # alternative's, unless a fit has converged to the noise; the fits are taken in the
+    # order of ``order`` (the loop's outcome, whatever the threads' timing).
+    def solve(i):
         first = [screened[i]] if i in screened else []
 
-        def fun_and_jac(u, first=first):
+        def fun_and_jac(u):
             return first.pop() if first else residuals_and_jacobian(problem, u, data)
 
-        sol = levenberg_marquardt(None, fun_and_jac, us[i], max_steps=max_steps)
-        if not np.isfinite(sol.cost):
-            continue
-        if best is None or sol.cost < best.cost:
-            best = sol
+        return levenberg_marquardt(None, fun_and_jac, us[i], max_steps=max_steps, stall=STALL)
+
+    groups, seen = [], set()
+    for ids in [order[:n_first]] + [
+        [i for i in order[n_first:] if group[i] == g] for g in range(1, len(bases))
+    ]:
+        groups.append([])
+        for i in ids:  # two combinations of starts that coincide run once
+            if us[i].tobytes() not in seen:
+                seen.add(us[i].tobytes())
+                groups[-1].append(i)
+    best = None
+    for k, ids in enumerate(groups):
+        if k and best is not None and best.converged and best.cost <= n_res:
+            break
+        for sol in parallel_map(solve, ids):
+            if k and best is not None and best.converged and best.cost <= n_res:
+                break  # run alongside one whose fit reached the noise: not needed
+            if np.isfinite(sol.cost) and (best is None or sol.cost < best.cost):
+                best = sol
     if best is None:  # every start failed: keep the best start point
         i = int(order[0])
         best = Solution(us[i], float(costs[i]), Status.FAILED, 0)

@@ -37,6 +37,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +58,8 @@ COMPILE_TIME: dict[str, tuple[int, float]] = {}
 TRIM_EVERY = 32
 
 _MEMORY: OrderedDict[str, Any] = OrderedDict()
+#: Programs being loaded or compiled by one thread, which others wait for.
+_PENDING: dict[str, Future] = {}
 _LOCK = threading.Lock()
 _STORES = [0]
 
@@ -83,36 +86,54 @@ def program(fun: Callable) -> Callable:
 
             t0 = time.perf_counter()
             exe = jax.jit(traced).lower(leaves).compile()
-            STATS["compiled"] += 1
-            n, secs = COMPILE_TIME.get(name, (0, 0.0))
-            COMPILE_TIME[name] = (n + 1, secs + time.perf_counter() - t0)
+            with _LOCK:
+                STATS["compiled"] += 1
+                n, secs = COMPILE_TIME.get(name, (0, 0.0))
+                COMPILE_TIME[name] = (n + 1, secs + time.perf_counter() - t0)
             _store(key, exe)
             return exe
 
-        with _LOCK:  # the posterior's ensembles call programs from two threads
+        # One caller makes a program that is not in memory (loads or compiles it); others
+        # that ask for it meanwhile (a diagnosis fits from several threads) wait for it.
+        with _LOCK:
             exe = _MEMORY.get(key)
-            if exe is not None:
-                _MEMORY.move_to_end(key)
+            pending = _PENDING.get(key) if exe is None else None
+            if exe is not None or pending is not None:
                 STATS["memory"] += 1
-        loaded = False
-        if exe is None:
+                if exe is not None:
+                    _MEMORY.move_to_end(key)
+            else:
+                _PENDING[key] = mine = Future()
+        if pending is not None:
+            exe = pending.result()
+        if exe is not None:
+            return exe(leaves)
+        try:
             exe = _load(key)
             loaded = exe is not None
             exe = exe if loaded else compiled()
-            _remember(key, exe)
-        out = exe(leaves)
-        if loaded:
-            # A stored program is checked on its first run: one that fails (a file from
-            # another build of jaxlib, say) is compiled afresh.
-            try:
-                jax.block_until_ready(out)
-                STATS["disk"] += 1
-            except Exception as err:
-                _disk_error(f"{name}: stored program failed on its first run: {err}")
-                _forget(key)
-                exe = compiled()
-                _remember(key, exe)
-                out = exe(leaves)
+            out = exe(leaves)
+            if loaded:
+                # A stored program is checked on its first run: one that fails (a file
+                # from another build of jaxlib, say) is compiled afresh.
+                try:
+                    jax.block_until_ready(out)
+                    with _LOCK:
+                        STATS["disk"] += 1
+                except Exception as err:
+                    _disk_error(f"{name}: stored program failed on its first run: {err}")
+                    _forget(key)
+                    exe = compiled()
+                    out = exe(leaves)
+        except BaseException as err:
+            with _LOCK:
+                del _PENDING[key]
+            mine.set_exception(err)
+            raise
+        _remember(key, exe)
+        with _LOCK:
+            del _PENDING[key]
+        mine.set_result(exe)
         return out
 
     call.__wrapped__ = fun
@@ -352,3 +373,52 @@ def _trim(folder: Path) -> None:
         with contextlib.suppress(OSError):
             path.unlink()
             total -= size
+
+
+# ----------------------------------------------------------------------------- threads
+
+
+def threads() -> int:
+    """Threads :func:`parallel_map` may use: ``$EWB_IDENT_THREADS`` if set (1 runs
+    everything in the calling thread; the tests set it, as pytest-xdist already runs one
+    process per core), else the cores this process may run on."""
+    text = os.environ.get("EWB_IDENT_THREADS", "").strip()
+    if text:
+        try:
+            return max(1, int(text))
+        except ValueError:
+            raise ValueError(
+                f"EWB_IDENT_THREADS={text!r} is not a whole number; set it to the number "
+                "of threads to use (1: none besides the calling thread), or unset it"
+            ) from None
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def parallel_map(fn: Callable, items) -> list:
+    """``[fn(x) for x in items]``, run in up to one thread per core (the results in the
+    order of ``items``; the first exception raised is raised).
+
+    A compiled program releases Python's lock while it runs, and XLA's compiler while it
+    compiles, so independent fits (several starts of one fit, several candidates of a
+    diagnosis) run side by side on a multi-core machine. Each call's work must not
+    depend on the others': the results are then those of the loop, whatever the
+    threads' timing. The workers run with the caller's float precision (JAX's 64-bit
+    switch is per thread).
+    """
+    items = list(items)
+    workers = min(len(items), threads())
+    if workers <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    x64 = bool(jax.config.jax_enable_x64)  # JAX's switch is per thread: the caller's
+
+    def run(x):
+        with jax.enable_x64(x64):
+            return fn(x)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(run, items))
