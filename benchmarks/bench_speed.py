@@ -10,9 +10,9 @@ Rows (each with its target):
    ``bench_fit.py``, which also says how the peer is set up);
 2. a cold ``ewb-ident fit`` of each (fresh process, empty program cache) against the
    peer's cold command; 3. the same with the cache filled by row 2;
-4. ``ewb-ident diagnose`` of 3 s traces at 200 Hz (the shipped concealed backlash, a gap
-   stage mechanism, and stiction, a motor mechanism: the motor candidates are the
-   slowest fits of a diagnosis) and at 1 kHz (``datasets/position_1khz.csv``), cold and
+4. ``ewb-ident diagnose`` of 3 s traces: the shipped concealed backlash (200 Hz, a gap
+   stage mechanism) and stiction (500 Hz, a motor mechanism: the motor candidates are
+   the slowest fits of a diagnosis), and ``datasets/position_1khz.csv`` (1 kHz), cold and
    with the cache filled;
 5. the whole-chain posterior to ESS >= 1000 for a, b, c, mu (``ewb-ident sample
    --min-ess 1000``) of ``datasets/steps_200hz.csv``, cold (fresh process, empty cache)
