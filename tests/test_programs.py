@@ -143,3 +143,23 @@ def test_a_thread_count_that_is_not_a_number_is_refused(monkeypatch):
     monkeypatch.setenv("EWB_IDENT_THREADS", "two")
     with pytest.raises(ValueError, match="EWB_IDENT_THREADS='two' is not a whole number"):
         programs.parallel_map(abs, [1, 2])
+
+
+def test_a_compiler_option_jaxlib_lacks_is_dropped_not_fatal(folder, monkeypatch):
+    monkeypatch.setattr(programs, "COMPILER_OPTIONS", {"xla_no_such_option_here": False})
+    monkeypatch.setattr(programs, "_OPTIONS_KNOWN", [True])
+    x = jnp.linspace(0.0, 1.0, 13)
+    m = _Scaled(7.0, jnp.asarray(0.125))
+    out = _apply(m, x, 2)
+    np.testing.assert_allclose(out["y"], _plain(m, x, 2)["y"], rtol=1e-14)
+    assert programs._OPTIONS_KNOWN == [False]
+
+
+def test_the_compiler_options_change_no_residual(folder):
+    """The options the programs compile with (XLA's fusion emitters off) give the same
+    numbers as XLA's defaults."""
+    x = jnp.linspace(-2.0, 3.0, 301)
+    lowered = jax.jit(lambda x: jnp.tanh(x) ** 3 * jnp.exp(-x * x) + jnp.abs(x) ** 2.82).lower(x)
+    np.testing.assert_allclose(
+        programs._compile(lowered)(x), lowered.compile()(x), rtol=1e-15, atol=0
+    )
