@@ -404,43 +404,47 @@ def fit_mechanisms(
         costs = np.zeros(1)
     costs = np.where(np.isfinite(costs), costs, np.inf)
     ranked = [int(i) for i in np.argsort(costs)]
-    order = ranked[: max(1, n_best)]
-    n_first = len(order)
+    # The solver runs from the best starts overall, then from the best of each
+    # alternative (``groups``); a start that coincides with one before it runs once.
     group = np.asarray(group)
-    for g in range(1, len(bases)):  # the best starts of each alternative too
-        order += [i for i in ranked if group[i] == g and i not in order][: max(1, n_best)]
+    first = ranked[: max(1, n_best)]
+    groups, seen = [], set()
+    for ids in [first] + [
+        [i for i in ranked if group[i] == g and i not in first][: max(1, n_best)]
+        for g in range(1, len(bases))
+    ]:
+        groups.append([])
+        for i in ids:
+            if us[i].tobytes() not in seen:
+                seen.add(us[i].tobytes())
+                groups[-1].append(i)
+    order = [i for ids in groups for i in ids]
     # Residuals that count (nonzero weight): a converged fit with a cost no larger (reduced
     # chi-square at most 1 under the fit's noise weights) explains the data to the noise,
     # and the alternatives' starts, there for a fit caught in another valley, are not run.
     n_res = sum(int(np.count_nonzero(np.asarray(data["w"][ch]))) for ch in problem.channels)
     screened = {i: screened[i] for i in order if i in screened}
 
-    # The solver runs from the best starts overall side by side, then from each
-    # alternative's, unless a fit has converged to the noise; the fits are taken in the
-    # order of ``order`` (the loop's outcome, whatever the threads' timing).
     def solve(i):
-        first = [screened[i]] if i in screened else []
+        made = [screened[i]] if i in screened else []
 
         def fun_and_jac(u):
-            return first.pop() if first else residuals_and_jacobian(problem, u, data)
+            return made.pop() if made else residuals_and_jacobian(problem, u, data)
 
         return levenberg_marquardt(None, fun_and_jac, us[i], max_steps=max_steps, stall=STALL)
 
-    groups, seen = [], set()
-    for ids in [order[:n_first]] + [
-        [i for i in order[n_first:] if group[i] == g] for g in range(1, len(bases))
-    ]:
-        groups.append([])
-        for i in ids:  # two combinations of starts that coincide run once
-            if us[i].tobytes() not in seen:
-                seen.add(us[i].tobytes())
-                groups[-1].append(i)
+    def at_noise() -> bool:
+        return best is not None and best.converged and best.cost <= n_res
+
+    # Each group's starts run side by side; their fits are taken in the group's order
+    # (the loop's outcome, whatever the threads' timing), and no later start counts once
+    # a fit has converged to the noise.
     best = None
     for k, ids in enumerate(groups):
-        if k and best is not None and best.converged and best.cost <= n_res:
+        if k and at_noise():
             break
         for sol in parallel_map(solve, ids):
-            if k and best is not None and best.converged and best.cost <= n_res:
+            if k and at_noise():
                 break  # run alongside one whose fit reached the noise: not needed
             if np.isfinite(sol.cost) and (best is None or sol.cost < best.cost):
                 best = sol

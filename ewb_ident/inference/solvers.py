@@ -158,7 +158,8 @@ def levenberg_marquardt(
                 stall is not None
                 and len(gains) >= STALL_STEPS
                 and sum(gains[-STALL_STEPS:]) < stall
-                and gauss_newton_decrease(A, g) < 1.0
+                and (point := _Linearised.of(r, J, marquardt=True)) is not None
+                and point.gauss_newton_decrease() < 1.0
             ):
                 return Solution(u, cost, Status.SUCCESSFUL, step, at=at)
         else:
@@ -170,18 +171,6 @@ def levenberg_marquardt(
 
 #: Steps over which :func:`levenberg_marquardt` judges a stall.
 STALL_STEPS = 10
-
-
-def gauss_newton_decrease(A: np.ndarray, g: np.ndarray) -> float:
-    """The decrease of ``sum(r^2)`` the undamped Gauss-Newton step predicts,
-    ``g^T A^+ g`` with ``A = J^T J`` and ``g = J^T r``: for residuals in units of their
-    noise, the squared distance to the linearised optimum in standard errors. Directions
-    whose (column-scaled) condition number exceeds :data:`NULL_LIMIT` are left out."""
-    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
-    w, V = np.linalg.eigh(A / np.outer(d, d))
-    keep = w > float(np.max(w, initial=0.0)) / NULL_LIMIT**2
-    b = V[:, keep].T @ (g / d)
-    return float(np.sum(b * b / w[keep]))
 
 
 def seed_levenberg_marquardt(
@@ -270,7 +259,11 @@ class _Linearised:
         all by the largest), or ``None`` where the residuals or the Jacobian are not
         finite (a diverging model, an exponent's parameter far out)."""
         out = fun_and_jac(u)
-        r, J = np.asarray(out[0]), np.asarray(out[1])
+        return cls.of(np.asarray(out[0]), np.asarray(out[1]), marquardt)
+
+    @classmethod
+    def of(cls, r: np.ndarray, J: np.ndarray, marquardt: bool) -> _Linearised | None:
+        """The linearisation from residuals ``r`` and their Jacobian ``J`` (see :meth:`at`)."""
         with np.errstate(over="ignore", invalid="ignore"):
             cost = float(r @ r)
             scale = np.linalg.norm(J, axis=0)
@@ -290,10 +283,17 @@ class _Linearised:
         keep = (lam / (self.s**2 + lam)) ** 2
         return delta, float(np.sum(self.b**2 * (1.0 - keep)))
 
+    def gauss_newton_decrease(self) -> float:
+        """The decrease of ``sum(r^2)`` the undamped Gauss-Newton step predicts, along
+        the directions whose condition number is within :data:`NULL_LIMIT`: for
+        residuals in units of their noise, the squared distance to the linearised
+        optimum in standard errors."""
+        if not self.s.size:
+            return 0.0
+        ok = self.s * NULL_LIMIT > float(self.s[0])
+        return float(np.sum(self.b[ok] ** 2))
+
     def near_optimum(self, gn_tol: float) -> bool:
         """Whether the Gauss-Newton step's predicted decrease is within the tolerance."""
-        if not self.s.size:
-            return True
-        ok = self.s * NULL_LIMIT > float(self.s[0])
         dof = max(self.n - self.s.size, 1)
-        return float(np.sum(self.b[ok] ** 2)) <= gn_tol * self.cost / dof
+        return self.gauss_newton_decrease() <= gn_tol * self.cost / dof
