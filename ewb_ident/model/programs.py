@@ -110,21 +110,21 @@ def program(fun: Callable) -> Callable:
             return exe(leaves)
         try:
             exe = _load(key)
-            loaded = exe is not None
-            exe = exe if loaded else compiled()
-            out = exe(leaves)
-            if loaded:
-                # A stored program is checked on its first run: one that fails (a file
-                # from another build of jaxlib, say) is compiled afresh.
+            if exe is not None:
+                # A stored program is checked on its first run, call and result: one that
+                # fails (a file from another build of jaxlib, or one compiled from JAX's
+                # own cache without its kernels) is compiled afresh.
                 try:
-                    jax.block_until_ready(out)
+                    out = jax.block_until_ready(exe(leaves))
                     with _LOCK:
                         STATS["disk"] += 1
                 except Exception as err:
                     _disk_error(f"{name}: stored program failed on its first run: {err}")
                     _forget(key)
-                    exe = compiled()
-                    out = exe(leaves)
+                    exe = None
+            if exe is None:
+                exe = compiled()
+                out = exe(leaves)
         except BaseException as err:
             with _LOCK:
                 del _PENDING[key]
