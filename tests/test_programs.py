@@ -163,3 +163,9 @@ def test_the_compiler_options_change_no_residual(folder):
     np.testing.assert_allclose(
         programs._compile(lowered)(x), lowered.compile()(x), rtol=1e-15, atol=0
     )
+
+
+def test_a_thread_count_under_one_is_refused(monkeypatch):
+    monkeypatch.setenv("EWB_IDENT_THREADS", "0")
+    with pytest.raises(ValueError, match="EWB_IDENT_THREADS='0': at least 1 thread is needed"):
+        programs.threads()

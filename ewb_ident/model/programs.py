@@ -406,12 +406,18 @@ def threads() -> int:
     text = os.environ.get("EWB_IDENT_THREADS", "").strip()
     if text:
         try:
-            return max(1, int(text))
+            n = int(text)
         except ValueError:
             raise ValueError(
                 f"EWB_IDENT_THREADS={text!r} is not a whole number; set it to the number "
                 "of threads to use (1: none besides the calling thread), or unset it"
             ) from None
+        if n < 1:
+            raise ValueError(
+                f"EWB_IDENT_THREADS={text!r}: at least 1 thread is needed (1: none besides "
+                "the calling thread); set it to 1 or more, or unset it"
+            )
+        return n
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
