@@ -22,6 +22,7 @@ filled by the previous run, against ``python scipy_peer.py TRACE PROBLEM.json``.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -65,6 +66,29 @@ def machine() -> str:
     return (
         f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, jax {jax.__version__}"
     )
+
+
+class Report:
+    """A benchmark's table: each row printed as it is measured, and the whole written,
+    under the command that made it and the machine, to the file of ``--out`` (default
+    ``reports/NAME.md``) by :meth:`write`."""
+
+    def __init__(self, script: str, doc: str):
+        name = Path(script).stem
+        ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+        ap.add_argument("--out", type=Path, default=ROOT / "reports" / f"{name}.md")
+        self.out = ap.parse_args().out
+        self.title = f"# `python benchmarks/{name}.py`"
+        self.lines = [f"machine: {machine()}", ""]
+
+    def row(self, text: str) -> None:
+        print(text, flush=True)
+        self.lines.append(text)
+
+    def write(self) -> None:
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.out.write_text(self.title + "\n\n" + "\n".join(self.lines) + "\n")
+        print(f"wrote {self.out}")
 
 
 def issue_traces(folder: Path) -> list[Path]:

@@ -147,22 +147,57 @@ def test_a_thread_count_that_is_not_a_number_is_refused(monkeypatch):
 
 def test_a_compiler_option_jaxlib_lacks_is_dropped_not_fatal(folder, monkeypatch):
     monkeypatch.setattr(programs, "COMPILER_OPTIONS", {"xla_no_such_option_here": False})
-    monkeypatch.setattr(programs, "_OPTIONS_KNOWN", [True])
+    monkeypatch.setattr(programs, "_REFUSED", set())
     x = jnp.linspace(0.0, 1.0, 13)
     m = _Scaled(7.0, jnp.asarray(0.125))
     out = _apply(m, x, 2)
     np.testing.assert_allclose(out["y"], _plain(m, x, 2)["y"], rtol=1e-14)
-    assert programs._OPTIONS_KNOWN == [False]
+    assert programs._REFUSED == {(("xla_no_such_option_here", False),)}
+
+
+def test_a_programs_own_option_jaxlib_refuses_falls_back_to_the_common_ones(monkeypatch):
+    """An option value this jaxlib does not know (here a preset that does not exist) is
+    dropped, and the program compiles with the options every program has."""
+    monkeypatch.setattr(programs, "_REFUSED", set())
+    seen = []
+    lowered = jax.jit(lambda x: jnp.tanh(x) * 2.0).lower(jnp.ones(5))
+    real = type(lowered).compile
+
+    def spy(self, compiler_options=None):
+        seen.append(dict(compiler_options or {}))
+        return real(self, compiler_options=compiler_options)
+
+    monkeypatch.setattr(type(lowered), "compile", spy)
+    exe = programs._compile(lowered, {"xla_cpu_opt_preset": "CPU_OPT_PRESET_NO_SUCH"})
+    np.testing.assert_allclose(exe(jnp.ones(5)), 2.0 * np.tanh(np.ones(5)), rtol=1e-15)
+    assert seen == [
+        programs.COMPILER_OPTIONS | {"xla_cpu_opt_preset": "CPU_OPT_PRESET_NO_SUCH"},
+        programs.COMPILER_OPTIONS,
+    ]
 
 
 def test_the_compiler_options_change_no_residual(folder):
-    """The options the programs compile with (XLA's fusion emitters off) give the same
-    numbers as XLA's defaults."""
+    """The options the programs compile with (XLA's fusion emitters off; the fast-compile
+    preset of the mechanism programs) give the same numbers as XLA's defaults, on a
+    loop of small kernels like the motor's sub-steps."""
     x = jnp.linspace(-2.0, 3.0, 301)
     lowered = jax.jit(lambda x: jnp.tanh(x) ** 3 * jnp.exp(-x * x) + jnp.abs(x) ** 2.82).lower(x)
     np.testing.assert_allclose(
         programs._compile(lowered)(x), lowered.compile()(x), rtol=1e-15, atol=0
     )
+
+    def loop(p):
+        def step(s, v):
+            w = s[1] + 1e-3 * (v - p[0] * s[0] - jnp.tanh(s[1] / p[1]))
+            return jnp.stack([s[0] + 1e-3 * w, w]), s[0] ** p[2]
+        return jax.lax.scan(step, jnp.array([0.1, 0.0]), jnp.sin(x))[1]
+
+    lowered = jax.jit(jax.jacfwd(loop)).lower(jnp.array([2.0, 0.05, 1.5]))
+    p = jnp.array([2.0, 0.05, 1.5])
+    np.testing.assert_allclose(
+        programs._compile(lowered, programs.FAST_COMPILE)(p), lowered.compile()(p),
+        rtol=1e-13, atol=0,
+    )  # fmt: skip
 
 
 def test_a_thread_count_under_one_is_refused(monkeypatch):

@@ -33,7 +33,14 @@ from ewb_ident.inference.uncertainty import serial_sd
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
-from ewb_ident.model.programs import on_device, pad_to, padded_length, parallel_map, program
+from ewb_ident.model.programs import (
+    FAST_COMPILE,
+    on_device,
+    pad_to,
+    padded_length,
+    parallel_map,
+    program,
+)
 
 #: Most starting points tried per fit.
 MAX_STARTS = 24
@@ -238,7 +245,7 @@ def _seed_residuals_and_jacobian(problem: AugProblem, u, data):
     return r.reshape(-1), J.reshape(-1, len(cols)), {ch: pred[ch] for ch in outputs}
 
 
-@program
+@program(options=FAST_COMPILE)
 def _mechanism_program(problem: AugProblem, u, data):
     def f(v):
         pred = problem.predict(v, data)

@@ -36,7 +36,7 @@ import pickle
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
@@ -64,10 +64,16 @@ _LOCK = threading.Lock()
 _STORES = [0]
 
 
-def program(fun: Callable) -> Callable:
+def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = None):
     """``fun`` compiled per fixed configuration and argument shapes, and kept (see the
     module docstring). The outputs must be arrays in lists, tuples and dicts. Called
-    while another program is traced, ``fun`` is traced into it."""
+    while another program is traced, ``fun`` is traced into it.
+
+    ``options``: XLA options of this program on top of :data:`COMPILER_OPTIONS`
+    (``@program(options=...)``); e.g. :data:`FAST_COMPILE`."""
+    if fun is None:
+        return functools.partial(program, options=options)
+    extra = dict(options or {})
     name = f"{fun.__module__}.{fun.__qualname__}"
 
     @functools.wraps(fun)
@@ -85,7 +91,7 @@ def program(fun: Callable) -> Callable:
                 return fun(*eqx.combine(jax.tree_util.tree_unflatten(treedef, flat), static))
 
             t0 = time.perf_counter()
-            exe = _compile(jax.jit(traced).lower(leaves))
+            exe = _compile(jax.jit(traced).lower(leaves), extra)
             with _LOCK:
                 STATS["compiled"] += 1
                 n, secs = COMPILE_TIME.get(name, (0, 0.0))
@@ -146,18 +152,34 @@ def program(fun: Callable) -> Callable:
 #: residuals equal bit for bit, Jacobians to 1e-13 relative. A jaxlib that does not
 #: know an option compiles without it.
 COMPILER_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
-_OPTIONS_KNOWN = [True]
+
+#: XLA's fast-compile preset, for programs built around a long loop of small scalar
+#: kernels (the motor with mechanisms: each sub-step is some 40-70 kernels of a few
+#: numbers). On the 2-core machine (jaxlib 0.10.2) such a program compiles 15-30 %
+#: faster and runs 1.3-1.9x faster with it (e.g. stiction with wedge load torque,
+#: residuals and Jacobian 39 -> 21 ms), with residuals and Jacobians equal bit for bit;
+#: the seed model's programs compile 20-40 % slower with it and run no faster, so it is
+#: not every program's (``benchmarks/bench_compiler_options.py``).
+FAST_COMPILE: dict[str, Any] = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
+#: Option sets this jaxlib refused (one holds an option it does not know).
+_REFUSED: set[tuple] = set()
 
 
-def _compile(lowered):
-    """``lowered.compile()`` with :data:`COMPILER_OPTIONS` where jaxlib knows them."""
-    if _OPTIONS_KNOWN[0] and jax.default_backend() == "cpu":
-        try:
-            return lowered.compile(compiler_options=COMPILER_OPTIONS)
-        except Exception as err:  # an option this jaxlib does not have
-            if "compile option" not in str(err):
-                raise
-            _OPTIONS_KNOWN[0] = False
+def _compile(lowered, extra: Mapping[str, Any] | None = None):
+    """``lowered.compile()`` with :data:`COMPILER_OPTIONS` and ``extra`` where jaxlib
+    knows them: a set it refuses is retried without ``extra``, then without options."""
+    if jax.default_backend() == "cpu":
+        for opts in (COMPILER_OPTIONS | dict(extra or {}), COMPILER_OPTIONS):
+            key = tuple(sorted(opts.items()))
+            if not opts or key in _REFUSED:
+                continue
+            try:
+                return lowered.compile(compiler_options=opts)
+            except Exception as err:  # an option (or value) this jaxlib does not have
+                if not any(m in str(err) for m in ("compile option", "setting option")):
+                    raise
+                with _LOCK:
+                    _REFUSED.add(key)
     return lowered.compile()
 
 
