@@ -155,11 +155,11 @@ COMPILER_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 
 #: XLA's fast-compile preset, for programs built around a long loop of small scalar
 #: kernels (the motor with mechanisms: each sub-step is some 40-70 kernels of a few
-#: numbers). On the 2-core machine (jaxlib 0.10.2) such a program compiles 15-30 %
-#: faster and runs 1.3-1.9x faster with it (e.g. stiction with wedge load torque,
-#: residuals and Jacobian 39 -> 21 ms), with residuals and Jacobians equal bit for bit;
-#: the seed model's programs compile 20-40 % slower with it and run no faster, so it is
-#: not every program's (``benchmarks/bench_compiler_options.py``).
+#: numbers). On the 2-core machine (jaxlib 0.10.2) such a program runs 1.15-1.7x faster
+#: with it (e.g. stiction with wedge load torque, residuals and Jacobian 38 -> 22 ms) and
+#: compiles in about the same time, its outputs equal to 2e-14 relative; the seed
+#: model's programs compile 20-25 % slower with it, so it is not every program's
+#: (``python benchmarks/bench_compiler_options.py``).
 FAST_COMPILE: dict[str, Any] = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
 #: Option sets this jaxlib refused (one holds an option it does not know).
 _REFUSED: set[tuple] = set()
