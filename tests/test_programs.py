@@ -204,3 +204,41 @@ def test_a_thread_count_under_one_is_refused(monkeypatch):
     monkeypatch.setenv("EWB_IDENT_THREADS", "0")
     with pytest.raises(ValueError, match="EWB_IDENT_THREADS='0': at least 1 thread is needed"):
         programs.threads()
+
+
+
+def test_made_once_makes_a_key_once_and_hands_its_failure_to_the_waiters():
+    import threading
+    import time as _time
+
+    lock, pending, store, calls = threading.Lock(), {}, {}, []
+
+    def make_slowly(value):
+        def make():
+            calls.append(value)
+            _time.sleep(0.2)  # the other callers ask meanwhile
+            if value is None:
+                raise RuntimeError("could not make it")
+            store[value] = value
+            return value
+
+        return make
+
+    def ask(key, value, out):
+        try:
+            out.append(programs.made_once(lock, pending, key, store.get, make_slowly(value)))
+        except RuntimeError as err:
+            out.append(str(err))
+
+    made, failed = [], []
+    threads = [threading.Thread(target=ask, args=(7, 7, made)) for _ in range(3)]
+    threads += [threading.Thread(target=ask, args=("bad", None, failed)) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(made) == [(7, False), (7, False), (7, True)]
+    assert failed == ["could not make it"] * 3
+    assert sorted(calls, key=str) == [7, None]
+    assert pending == {}
+    assert programs.made_once(lock, pending, 7, store.get, make_slowly(8)) == (7, False)

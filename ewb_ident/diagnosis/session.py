@@ -41,7 +41,7 @@ from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
 from ewb_ident.model.physics import clamp_force
-from ewb_ident.model.programs import on_device
+from ewb_ident.model.programs import made_once, on_device
 
 #: A mechanism must lower the BIC by at least this much.
 BIC_THRESHOLD = 10.0
@@ -274,27 +274,14 @@ class Session:
         session; callers in other threads that ask for it meanwhile wait for it."""
         stages = stage_order(stages)
         key = _key(stages, mechs)
-        with self._lock:
-            done = self.cache.get(key)
-            pending = self._pending.get(key) if done is None else None
-            if done is None and pending is None:
-                self._pending[key] = mine = Future()
-        if done is not None:
-            return done
-        if pending is not None:
-            return pending.result()
-        try:
+
+        def make() -> AugFit:
             f = self._fit(stages, mechs, explore)
-        except BaseException as err:
             with self._lock:
-                del self._pending[key]
-            mine.set_exception(err)
-            raise
-        with self._lock:
-            self.cache[key] = f
-            del self._pending[key]
-        mine.set_result(f)
-        return f
+                self.cache[key] = f
+            return f
+
+        return made_once(self._lock, self._pending, key, self.cache.get, make)[0]
 
     def _fit(self, stages, mechs, explore) -> AugFit:
         free = self.free_of(stages)

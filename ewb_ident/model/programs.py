@@ -99,29 +99,22 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
             _store(key, exe)
             return exe
 
-        # One caller makes a program that is not in memory (loads or compiles it); others
-        # that ask for it meanwhile (a diagnosis fits from several threads) wait for it.
-        with _LOCK:
-            exe = _MEMORY.get(key)
-            pending = _PENDING.get(key) if exe is None else None
-            if exe is not None or pending is not None:
-                STATS["memory"] += 1
-                if exe is not None:
-                    _MEMORY.move_to_end(key)
-            else:
-                _PENDING[key] = mine = Future()
-        if pending is not None:
-            exe = pending.result()
-        if exe is not None:
-            return exe(leaves)
-        try:
+        def in_memory(k):
+            exe = _MEMORY.get(k)
+            if exe is not None:
+                _MEMORY.move_to_end(k)
+            return exe
+
+        first = []  # the maker's first run, checked when the program was loaded
+
+        def load_or_compile():
             exe = _load(key)
             if exe is not None:
                 # A stored program is checked on its first run, call and result: one that
                 # fails (a file from another build of jaxlib, or one compiled from JAX's
                 # own cache without its kernels) is compiled afresh.
                 try:
-                    out = jax.block_until_ready(exe(leaves))
+                    first.append(jax.block_until_ready(exe(leaves)))
                     with _LOCK:
                         STATS["disk"] += 1
                 except Exception as err:
@@ -130,20 +123,49 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
                     exe = None
             if exe is None:
                 exe = compiled()
-                out = exe(leaves)
-        except BaseException as err:
-            with _LOCK:
-                del _PENDING[key]
-            mine.set_exception(err)
-            raise
-        _remember(key, exe)
+                first.append(exe(leaves))
+            _remember(key, exe)
+            return exe
+
+        # One caller makes a program that is not in memory (loads or compiles it); others
+        # that ask for it meanwhile (a diagnosis fits from several threads) wait for it.
+        exe, made = made_once(_LOCK, _PENDING, key, in_memory, load_or_compile)
+        if made:
+            return first[0]
         with _LOCK:
-            del _PENDING[key]
-        mine.set_result(exe)
-        return out
+            STATS["memory"] += 1
+        return exe(leaves)
 
     call.__wrapped__ = fun
     return call
+
+
+def made_once(lock, pending: dict, key, lookup: Callable, make: Callable) -> tuple[Any, bool]:
+    """``lookup(key)`` (called under ``lock``) or, where it gives ``None``, ``make()``,
+    run by one caller while the others that ask for ``key`` meanwhile wait for its
+    result (``pending``: the keys being made, shared by the callers). ``make`` keeps
+    what it made where ``lookup`` finds it. Returns the value and whether this caller
+    made it; an exception of ``make`` reaches the waiting callers too."""
+    with lock:
+        value = lookup(key)
+        waiting = pending.get(key) if value is None else None
+        if value is None and waiting is None:
+            pending[key] = mine = Future()
+    if value is not None:
+        return value, False
+    if waiting is not None:
+        return waiting.result(), False
+    try:
+        value = make()
+    except BaseException as err:
+        with lock:
+            del pending[key]
+        mine.set_exception(err)
+        raise
+    with lock:
+        del pending[key]
+    mine.set_result(value)
+    return value, True
 
 
 #: XLA options of every program: XLA's CPU fusion emitters off (the elemental emitters
