@@ -193,7 +193,7 @@ def test_log_posterior_matches_an_independent_numpy_computation(force_torque):
     model, names, u0, _ = build(res.fits, load_priors(), "white", [trace.time_s])
     assert names == ("a", "b", "c")
     U = u0 + 0.01 * np.random.default_rng(1).standard_normal((5, 3))
-    got = batched(v_logp_q, model, U, size=5)[0]
+    got = batched(v_logp_q.bind(model), U, size=5)[0]
     x, F, sigma = trace["x_m"], trace["force_N"], res.fits[0].sigma[0]["force_N"]
     for u, value in zip(U, got, strict=True):
         a = PARAMS["a"].ref * math.exp(u[0])

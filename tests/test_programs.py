@@ -242,3 +242,32 @@ def test_made_once_makes_a_key_once_and_hands_its_failure_to_the_waiters():
     assert sorted(calls, key=str) == [7, None]
     assert pending == {}
     assert programs.made_once(lock, pending, 7, store.get, make_slowly(8)) == (7, False)
+
+
+@programs.program
+def _shifted(m: _Scaled, x):
+    return {"y": m.factor * jnp.sin(x) + m.offset}
+
+
+def test_a_bound_program_gives_the_same_results_without_hashing_its_arguments_again(
+    folder, monkeypatch
+):
+    m = _Scaled(2.0, jnp.asarray(0.5))
+    f = _shifted.bind(m)
+    x = np.linspace(0.0, 1.0, 7)
+    c0 = _counts()
+    np.testing.assert_array_equal(f(x)["y"], _shifted(m, x)["y"])  # compiled once
+    keys = []
+    real_key = programs._key
+    monkeypatch.setattr(programs, "_key", lambda *a: keys.append(1) or real_key(*a))
+    c1 = _counts()
+    for k in range(3):
+        np.testing.assert_array_equal(f(x + k)["y"], 2.0 * np.sin(x + k) + 0.5)
+    assert not keys  # the program was found once, not per call
+    c2 = _counts()
+    assert c1["compiled"] - c0["compiled"] == 1 and c2["compiled"] == c1["compiled"]
+    assert c2["memory"] - c1["memory"] == 3  # still counted as reuse (--verbose)
+    y9 = f(np.linspace(0.0, 1.0, 9))["y"]  # another shape: another program
+    assert y9.shape == (9,) and _counts()["compiled"] - c2["compiled"] == 1
+    with pytest.raises(TypeError, match="after the bound ones must be arrays"):
+        _apply.bind(m)(x, 2)

@@ -266,8 +266,10 @@ def run_chains(
     starts = walker_starts(lp, fits, u0, W, [np.random.default_rng(s) for s in seq[:n_ensembles]])
     t_compile = time.perf_counter()
 
+    logp_q = v_logp_q.bind(lp)
+
     def logp(X: np.ndarray) -> np.ndarray:
-        return batched(v_logp_q, lp, X, size=W // 2)[0]
+        return batched(logp_q, X, size=W // 2)[0]
 
     samplers = [
         _sampler(

@@ -198,14 +198,15 @@ def v_predictive(lp: _LogPost, X, S):
     return jax.vmap(lp.predictive)(X, S)
 
 
-def batched(fn, lp, X: np.ndarray, *extra: np.ndarray, size: int):
-    """``fn(lp, X, *extra)`` over the rows of X in batches of one size (one compilation)."""
+def batched(fn, X: np.ndarray, *extra: np.ndarray, size: int):
+    """``fn(X, *extra)`` over the rows of X in batches of one size (one compilation);
+    ``fn`` is a program with its other arguments bound (e.g. ``v_logp_q.bind(lp)``)."""
     n = X.shape[0]
     pad = (-n) % size
     arrays = [np.concatenate([a, np.repeat(a[:1], pad, 0)]) for a in (X, *extra)]
     outs = []
     for i in range(0, n + pad, size):
-        res = fn(lp, *(a[i : i + size] for a in arrays))
+        res = fn(*(a[i : i + size] for a in arrays))
         outs.append(jax.tree_util.tree_map(np.asarray, res))
     return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:n], *outs)
 
@@ -310,7 +311,7 @@ def walker_starts(lp, fits, u0, n_walkers, rngs) -> list[np.ndarray]:
     for rng in rngs:
         p = u0 + OVERDISPERSION * rng.standard_normal((n_walkers, u0.size)) @ L.T
         for _ in range(30):
-            bad = ~np.isfinite(batched(v_logp_q, lp, p, size=n_walkers // 2)[0])
+            bad = ~np.isfinite(batched(v_logp_q.bind(lp), p, size=n_walkers // 2)[0])
             if not bad.any():
                 break
             p[bad] = (

@@ -237,7 +237,7 @@ def assemble(
     draws = {n: P[:, :, j] for j, n in enumerate(names)}
 
     # Noise levels: exact conditional draws s^2 | u, y ~ Inv-Gamma(n/2, Q/2).
-    Q = batched(v_logp_q, lp, U.reshape(-1, D), size=W // 2)[1].reshape(E, T * W, S)
+    Q = batched(v_logp_q.bind(lp), U.reshape(-1, D), size=W // 2)[1].reshape(E, T * W, S)
     rng = np.random.default_rng(seq[2 * E])
     n_seg = np.array([s.n for s in segs], float)
     s2 = Q / rng.chisquare(np.broadcast_to(n_seg, Q.shape))
@@ -475,7 +475,7 @@ def _predictive(lp, U, s2, segs, names, draws, samplers, burn, thin, max_draws, 
     K = idx.size
     X = U[:, idx].reshape(E * K, D)
     s = np.sqrt(s2[:, idx]).reshape(E * K, -1)
-    pred, log_lik = batched(v_predictive, lp, X, s, size=min(E * K, 128))
+    pred, log_lik = batched(v_predictive.bind(lp), X, s, size=min(E * K, 128))
     rng = np.random.default_rng(seq[2 * E + 2])
     y_rep, i0 = np.empty_like(pred), 0
     for j, seg in enumerate(segs):

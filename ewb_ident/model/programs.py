@@ -136,7 +136,38 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
             STATS["memory"] += 1
         return exe(leaves)
 
+    def bind(*fixed):
+        """``call`` with its leading arguments ``fixed``: a function of the remaining
+        ones, all arrays, that looks its program up once per shape and dtype of them
+        and then calls it directly, without splitting and hashing the fixed arguments
+        again (0.3 of the 0.8 ms a call of the posterior's log density took, which
+        emcee makes thousands of times). Same program, same inputs: same outputs."""
+        f_dynamic, _ = eqx.partition(fixed, eqx.is_array)
+        f_leaves = [jax.device_put(x) for x in jax.tree_util.tree_leaves(f_dynamic)]
+        found: dict[tuple, Any] = {}
+
+        def bound(*rest):
+            if not all(eqx.is_array(x) for x in rest):
+                raise TypeError(f"{name}: the arguments after the bound ones must be arrays")
+            sig = tuple((x.shape, x.dtype.str) for x in rest)
+            exe = found.get(sig)
+            if exe is None:
+                out = call(*fixed, *rest)  # made, loaded or found: now in memory
+                dynamic, static = eqx.partition((*fixed, *rest), eqx.is_array)
+                leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+                with _LOCK:
+                    exe = _MEMORY.get(_key(name, static, treedef, leaves))
+                if exe is not None:
+                    found[sig] = exe
+                return out
+            with _LOCK:
+                STATS["memory"] += 1
+            return exe([*f_leaves, *rest])
+
+        return bound
+
     call.__wrapped__ = fun
+    call.bind = bind
     return call
 
 
