@@ -691,3 +691,26 @@ def test_write_then_read_leaves_no_temporaries(tmp_path: Path) -> None:
     write_trace(trace, tmp_path / "syn.csv")
     assert sorted(os.listdir(tmp_path)) == ["syn.csv", "syn.json", "syn.parquet"]
     assert json.loads((tmp_path / "syn.json").read_text()) == {"r_eff_m": 0.15}
+
+
+def test_plain_numbers_parse_as_pandas_parses_them_and_other_forms_by_its_rules(
+    tmp_path: Path,
+) -> None:
+    """Cells of plain decimal numbers are parsed without pandas, to the same float64
+    values bit for bit; a column with any other form ('nan', '1_000', a unit) takes
+    pandas's rules as before."""
+    from ewb_ident.data.readers import _to_float
+
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal(3000) * 10.0 ** rng.integers(-9, 9, 3000)
+    cells = [repr(float(v)) for v in x] + [f"{v:.6g}" for v in x] + [f" {v:.17e}" for v in x]
+    cells += ["+1.5", ".5", "5.", "1E+05", "-0"]
+    want = pd.to_numeric(pd.Series(cells, dtype=object), errors="coerce").to_numpy(np.float64)
+    got = _to_float(np.array(cells), "trace.csv", "x_m")
+    assert got.dtype == np.float64 and np.array_equal(got, want)
+    mixed = _to_float(np.array(["1.5", "nan", "inf"]), "trace.csv", "x_m")
+    assert np.isnan(mixed[1]) and mixed[2] == np.inf and mixed[0] == 1.5
+    with pytest.raises(TraceError, match=r"x_m, row 2: cell '1_000' is not a number"):
+        _to_float(np.array(["1.5", "1_000"]), "trace.csv", "x_m")  # float() would take it
+    with pytest.raises(TraceError, match=r"row 1: cell '١٢' is not a number"):
+        _to_float(np.array(["١٢", "3"]), "trace.csv", "x_m")  # non-ASCII digits too

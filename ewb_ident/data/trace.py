@@ -58,10 +58,12 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, NoReturn
+from typing import TYPE_CHECKING, Any, Literal, NoReturn
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: Columns of the trace format v1, with their SI unit.
 COLUMNS: dict[str, str] = {
@@ -173,6 +175,8 @@ class Trace:
 
     def to_frame(self) -> pd.DataFrame:
         """The trace as a DataFrame, columns in :attr:`columns` order (SI units)."""
+        import pandas as pd
+
         return pd.DataFrame({c: self[c] for c in self.columns})
 
     def __getitem__(self, column: str) -> np.ndarray:
