@@ -220,6 +220,29 @@ def test_long_run_covariance_of_an_ar1_series(rho):
     np.testing.assert_allclose(np.diag(long_run_covariance(x)) / n, 1 / (1 - rho) ** 2, rtol=0.15)
 
 
+def test_serial_errors_do_not_depend_on_how_far_a_trace_is_padded():
+    """A trace padded to a program's length ends in rows weighted zero; the robust
+    variance is that of the recorded samples alone, whatever the padding."""
+    from ewb_ident.inference.uncertainty import serial_variance
+
+    rng = np.random.default_rng(4)
+    n, nch, p = 601, 2, 3
+    x = np.zeros((nch, n))
+    e = rng.standard_normal((nch, n))
+    for t in range(1, n):
+        x[:, t] = 0.7 * x[:, t - 1] + e[:, t]
+    J = rng.standard_normal((nch, n, p))
+    inv = np.linalg.inv(np.einsum("cti,ctj->ij", J, J))
+    want = serial_variance(J.reshape(-1, p), x.reshape(-1), inv, [(nch, n)])
+    for n_pad in (640, 768, 4096):
+        Jp = np.zeros((nch, n_pad, p))
+        Jp[:, :n] = J
+        rp = np.zeros((nch, n_pad))
+        rp[:, :n] = x  # residual weighted zero beyond the record, as fits pad them
+        got = serial_variance(Jp.reshape(-1, p), rp.reshape(-1), inv, [(nch, n_pad)])
+        np.testing.assert_array_equal(got, want)
+
+
 def test_standard_errors_widen_where_the_model_leaves_physics_out():
     """White residuals: the robust errors are the white ones. A concealed hysteresis
     (the model leaves it out, the residual runs for hundreds of samples): the white

@@ -97,7 +97,8 @@ def serial_variance(Js: np.ndarray, r: np.ndarray, inv: np.ndarray, segments) ->
     ``segments``: ``(n_channels, n_time)`` per block of rows, in order: a trace's
     channels, each a time series of ``n_time`` samples. The scores are summed over the
     channels at each instant (errors of one instant may be correlated across channels)
-    and ``S`` sums their :func:`long_run_covariance` over the blocks.
+    and ``S`` sums their :func:`long_run_covariance` over the blocks, each up to its
+    last nonzero score (a padded trace's tail, weighted zero, is not part of it).
     """
     p = Js.shape[1]
     meat = np.zeros((p, p))
@@ -105,7 +106,12 @@ def serial_variance(Js: np.ndarray, r: np.ndarray, inv: np.ndarray, segments) ->
     for nch, nt in segments:
         size = int(nch) * int(nt)
         g = (Js[row : row + size] * r[row : row + size, None]).reshape(nch, nt, p).sum(axis=0)
-        meat += long_run_covariance(g)
+        # A trace padded to a program's length ends in rows weighted zero: not samples.
+        # Left in, they would lengthen the series that the bandwidth and the transform
+        # see, and make the result depend on the padding.
+        recorded = np.flatnonzero(np.any(g != 0.0, axis=1))
+        if recorded.size:
+            meat += long_run_covariance(g[: recorded[-1] + 1])
         row += size
     if row != Js.shape[0]:
         raise ValueError(f"segments cover {row} rows, the Jacobian has {Js.shape[0]}")

@@ -332,7 +332,7 @@ def on_device(tree):
 
 #: Traces are padded to a multiple of this many samples (the padding weighted zero), so
 #: that traces of similar length share one compiled program.
-PAD = 256
+PAD = 128
 
 
 def padded_length(n: int) -> int:
