@@ -308,10 +308,11 @@ def walker_starts(lp, fits, u0, n_walkers, rngs) -> list[np.ndarray]:
     # Never wider than one unit of the O(1) u; never flat (emcee needs a full-rank start).
     L = V * np.sqrt(np.clip(lam, 1e-8 * max(float(np.max(lam)), 1e-12), 1.0))
     starts = []
+    logp_q = v_logp_q.bind(lp)
     for rng in rngs:
         p = u0 + OVERDISPERSION * rng.standard_normal((n_walkers, u0.size)) @ L.T
         for _ in range(30):
-            bad = ~np.isfinite(batched(v_logp_q.bind(lp), p, size=n_walkers // 2)[0])
+            bad = ~np.isfinite(batched(logp_q, p, size=n_walkers // 2)[0])
             if not bad.any():
                 break
             p[bad] = (

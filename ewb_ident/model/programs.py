@@ -78,8 +78,7 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
 
     @functools.wraps(fun)
     def call(*args):
-        dynamic, static = eqx.partition(args, eqx.is_array)
-        leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+        leaves, treedef, static = _split(args)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return fun(*args)  # called inside another program: part of it
         key = _key(name, static, treedef, leaves)
@@ -142,8 +141,7 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
         and then calls it directly, without splitting and hashing the fixed arguments
         again (0.3 of the 0.8 ms a call of the posterior's log density took, which
         emcee makes thousands of times). Same program, same inputs: same outputs."""
-        f_dynamic, _ = eqx.partition(fixed, eqx.is_array)
-        f_leaves = [jax.device_put(x) for x in jax.tree_util.tree_leaves(f_dynamic)]
+        f_leaves = [jax.device_put(x) for x in _split(fixed)[0]]
         found: dict[tuple, Any] = {}
 
         def bound(*rest):
@@ -153,8 +151,7 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
             exe = found.get(sig)
             if exe is None:
                 out = call(*fixed, *rest)  # made, loaded or found: now in memory
-                dynamic, static = eqx.partition((*fixed, *rest), eqx.is_array)
-                leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+                leaves, treedef, static = _split((*fixed, *rest))
                 with _LOCK:
                     exe = _MEMORY.get(_key(name, static, treedef, leaves))
                 if exe is not None:
@@ -169,6 +166,13 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
     call.__wrapped__ = fun
     call.bind = bind
     return call
+
+
+def _split(args: tuple) -> tuple[list, Any, Any]:
+    """A program's arguments as its traced leaves, their structure and the fixed rest."""
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+    return leaves, treedef, static
 
 
 def made_once(lock, pending: dict, key, lookup: Callable, make: Callable) -> tuple[Any, bool]:
