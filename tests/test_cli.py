@@ -118,6 +118,33 @@ def test_a_thread_count_that_is_not_a_number_exits_2_before_any_work(tmp_path):
     assert not out_dir.exists()
 
 
+def test_the_command_exits_with_its_code_after_its_output_and_exit_callbacks(tmp_path):
+    """``main`` ends the process without the interpreter's teardown: the output must be
+    complete and flushed, the ``atexit`` callbacks (``--verbose``'s summary) run, and
+    the exit code the command's, in a first run and in one that reads the disk cache."""
+    for run in ("first", "second"):
+        out_dir = tmp_path / run
+        proc = subprocess.run(
+            [sys.executable, "-m", "ewb_ident", "--verbose", "fit",
+             str(DATA / "staircase_200hz.csv"), "--stage", "force", "--out", str(out_dir)],
+            capture_output=True, text=True,
+            env=dict(os.environ, EWB_IDENT_CACHE=str(tmp_path / "cache")),
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.rstrip().endswith(f"wrote {out_dir / 'fit.json'}")
+        assert json.loads((out_dir / "fit.json").read_text())["converged"] is True
+        stats = proc.stderr.strip().splitlines()[-1]
+        assert stats.startswith("compiled programs:")
+        loaded = {"first": "(8 in memory, 0 from", "second": "(8 in memory, 1 from"}[run]
+        assert loaded in stats, stats
+    proc = subprocess.run(
+        [sys.executable, "-m", "ewb_ident", "fit", str(DATA / "staircase_200hz.csv"),
+         "--stage", "brake", "--out", str(tmp_path / "bad")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "unknown stage 'brake'" in proc.stderr
+
+
 def test_missing_file_is_a_clear_error(tmp_path):
     out = runner.invoke(app, ["fit", str(tmp_path / "nope.csv"), "--out", str(tmp_path / "o")])
     assert out.exit_code == 2 and "nope.csv" in out.output
