@@ -32,6 +32,7 @@ from ewb_ident.data.stages import STAGE_CHANNELS
 from ewb_ident.reporting.style import (
     CHANNEL_LABELS,
     SCALE,
+    fixed_margins,
     legend_with_phases,
     png_bytes,
     shade_phases,
@@ -43,7 +44,7 @@ if TYPE_CHECKING:
 def mismatch_figure(result: DiagnosisResult) -> Figure:
     """Normalised residuals per stage before and after, phases shaded."""
     rows = [(s, ch) for s, ch in STAGE_CHANNELS if (s, ch) in result.checks_before]
-    fig = Figure(figsize=(10, 1.9 * max(len(rows), 1) + 0.8), layout="constrained")
+    fig = Figure(figsize=(10, 1.9 * max(len(rows), 1) + 0.8))
     axes = fig.subplots(max(len(rows), 1), 1, sharex=True, squeeze=False)[:, 0]
     t = result.trace.time_s
     flagged = {(m.stage, m.channel) for m in result.mismatches}
@@ -65,13 +66,14 @@ def mismatch_figure(result: DiagnosisResult) -> Figure:
         f"{result.trace_name[:60]}: residual over the noise floor  -  verdict: {result.verdict}",
         fontsize=10,
     )
+    fixed_margins(fig, top=0.6, gap=0.35)
     return fig
 
 
 def chain_figure(result: DiagnosisResult) -> Figure:
     """The whole chain from the voltage, each channel, before and after."""
     chans = [ch for _, ch in STAGE_CHANNELS if ch in result.chain_before and result.trace.has(ch)]
-    fig = Figure(figsize=(10, 1.8 * max(len(chans), 1) + 0.8), layout="constrained")
+    fig = Figure(figsize=(10, 1.8 * max(len(chans), 1) + 0.8))
     axes = fig.subplots(max(len(chans), 1), 1, sharex=True, squeeze=False)[:, 0]
     t = result.trace.time_s
     for ax, ch in zip(axes, chans, strict=False):
@@ -88,12 +90,13 @@ def chain_figure(result: DiagnosisResult) -> Figure:
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time, s")
     fig.suptitle(f"{result.trace_name[:60]}: whole chain from the voltage", fontsize=10)
+    fixed_margins(fig, left=0.85, top=0.6, gap=0.35)
     return fig
 
 
 def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
     """The characteristic view of one finding, before and after, and its residual."""
-    fig = Figure(figsize=(10, 6.5), layout="constrained")
+    fig = Figure(figsize=(10, 6.5))
     top, bottom = fig.subplots(2, 1, height_ratios=(2, 1))
     tr = result.trace
     stage = finding.stage
@@ -123,8 +126,9 @@ def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
         bottom.set_ylabel(f"residual\n{CHANNEL_LABELS.get(ch, ch)}", fontsize=8)
         bottom.set_xlabel("time, s")
         legend_with_phases(bottom, loc="upper right")
-    title = finding.explanation
-    fig.suptitle(_wrap(f"{finding.effect}: {title}", 130), fontsize=8)
+    title = _wrap(f"{finding.effect}: {finding.explanation}", 130)
+    fig.suptitle(title, fontsize=8)
+    fixed_margins(fig, top=0.25 + 0.14 * (title.count("\n") + 1), gap=0.65)
     return fig
 
 
