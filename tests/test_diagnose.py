@@ -457,6 +457,42 @@ def test_two_effects_that_show_in_the_chain_only_together_are_both_named():
     assert {f.effect for f in res.findings} == {"force_hysteresis", "backlash"}, res.summary()
 
 
+def test_a_flexible_form_tried_ahead_by_a_worker_gives_the_loops_diagnosis(monkeypatch):
+    """With two threads, a worker with no candidate left to start tries the flexible
+    form of the supported candidate it fitted (a drifting zero: the offset's ``drift``
+    form) instead of waiting for the round's last fit: the outcome is the one-thread
+    run's, where the form is tried after the round."""
+    import threading
+
+    from ewb_ident.diagnosis import diagnose as module
+
+    eff = rig.SensorOffset("force_N", 0.0, drift_per_s=-25.0)
+    trace, _ = rig.simulate_rig(P, effects=[eff], name="drift", **SETTINGS)
+    catalog = ["backlash", "sensor_offset"]
+    in_caller, real = [], module._refine
+
+    def spy(ses, tried, *args, **kwargs):
+        main = threading.current_thread() is threading.main_thread()
+        in_caller.append((tried[0].variant, main))
+        return real(ses, tried, *args, **kwargs)
+
+    monkeypatch.setattr(module, "_refine", spy)
+    monkeypatch.setenv("EWB_IDENT_THREADS", "1")
+    one = diagnose(trace, catalog=catalog)
+    assert in_caller == [("sensor_offset[force_N]", True)]
+    in_caller.clear()
+    monkeypatch.setenv("EWB_IDENT_THREADS", "2")
+    two = diagnose(trace, catalog=catalog)
+    # Tried ahead by a worker, and not again; the torque sensor's offset, supported too
+    # and the best when it finished first, may have been tried ahead as well.
+    assert ("sensor_offset[force_N]", False) in in_caller
+    assert not any(main for _, main in in_caller)
+    a, b = json.loads(json_text(one.to_json())), json.loads(json_text(two.to_json()))
+    a.pop("timings_s"), b.pop("timings_s")
+    assert a == b and [f.effect for f in two.findings] == ["sensor_offset"]
+    assert two.findings[0].params["drift_per_s"] == pytest.approx(-25.0, rel=0.1)
+
+
 def test_the_candidates_fitted_side_by_side_give_the_loops_diagnosis(monkeypatch):
     """A diagnosis fits its candidates (and each fit's starts) in threads: the outcome is
     the one-thread run's, number for number."""

@@ -49,6 +49,8 @@ and were set on rig settings other than those the accuracy study measures on.
 from __future__ import annotations
 
 import functools
+import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -95,7 +97,7 @@ from ewb_ident.inference.augmented import (
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.model.numerics import numerics
-from ewb_ident.model.programs import parallel_map
+from ewb_ident.model.programs import parallel_map, threads
 
 # ----------------------------------------------------------------------------- main
 
@@ -278,18 +280,17 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
         say(f"round {rnd}: trying {', '.join(t.variant for t in todo)}")
         # The candidates are fitted side by side (one compiles while another fits);
         # each fit depends only on the round's start, so the results are the loop's.
-        tried = parallel_map(
-            functools.partial(
-                _try, ses, selected=work.selected, still=still, rnd=rnd, bic_threshold=bic_threshold
-            ),
-            todo,
+        attempt = functools.partial(
+            _try, ses, selected=work.selected, still=still, rnd=rnd, bic_threshold=bic_threshold
         )
+        ahead = _RefineAhead(ses, work.selected, rnd, bic_threshold, len(todo))
+        tried = parallel_map(ahead.wrap(attempt), todo)
         results = [t for t in tried if t is not None]
         _, best = _best(results)
         # The chosen form's family: a flexible form in its place when the trace shows it
         # (with nothing supported, the forms of those held back for a partial share).
         for r in [best] if best is not None else _short(results):
-            wider = _refine(ses, r, work.selected, rnd, bic_threshold)
+            wider = ahead.refined(r)
             if wider is not None:
                 results[next(i for i, x in enumerate(results) if x is r)] = wider
                 why = f"its flexible form fits better (dBIC {wider[0].form_gain_bic:.1f})"
@@ -323,6 +324,50 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
         # evidence test is more sensitive than the location test).
         still = set(located) | located_stages(ses, work.current, structured=True)
     return work
+
+
+class _RefineAhead:
+    """The flexible forms of a round's supported candidates, tried by a worker that
+    would otherwise wait for the round's last fit (the candidates' fit times differ by
+    up to 20x: a motor candidate with a load torque took 2 s of a 4 s search on the
+    2-core machine, the other core idle for 1 s, and the chosen form's refinement ran
+    after it, 0.5-1.2 s on one core). Only once every candidate of the round has
+    started, only for the best supported candidate so far, and only with more than one
+    thread; a refinement depends on the round's
+    start alone, so :meth:`refined` gives what :func:`_refine` gives after the round."""
+
+    def __init__(self, ses, selected, rnd: int, bic_threshold: float, n: int) -> None:
+        self._args = (ses, selected, rnd, bic_threshold)
+        self._n, self._started = n, 0
+        self._lock = threading.Lock()
+        self._done: dict[str, _Tried | None] = {}
+        self._lead = math.inf  # the lowest dBIC of a supported candidate so far
+        self._on = threads() > 1
+
+    def wrap(self, attempt: Callable[[Any], _Tried | None]) -> Callable[[Any], _Tried | None]:
+        def run(tmpl):
+            with self._lock:
+                self._started += 1
+            got = attempt(tmpl)
+            if got is None or got[0].rejected or not self._on:
+                return got
+            with self._lock:
+                # Ahead only for the best supported candidate so far (the round's choice
+                # unless a later one beats it) and only once none waits to start.
+                leads = got[0].delta_bic <= self._lead
+                self._lead = min(self._lead, got[0].delta_bic)
+                last = self._started == self._n
+            if leads and last and got[3].refinements():
+                self._done[got[0].variant] = _refine(*self._args[:1], got, *self._args[1:])
+            return got
+
+        return run
+
+    def refined(self, tried: _Tried) -> _Tried | None:
+        """:func:`_refine` of ``tried``, made ahead or now."""
+        if tried[0].variant in self._done:
+            return self._done[tried[0].variant]
+        return _refine(*self._args[:1], tried, *self._args[1:])
 
 
 def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
