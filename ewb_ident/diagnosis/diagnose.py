@@ -49,7 +49,6 @@ and were set on rig settings other than those the accuracy study measures on.
 from __future__ import annotations
 
 import functools
-import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -97,6 +96,7 @@ from ewb_ident.inference.augmented import (
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.model.numerics import numerics
+from ewb_ident.model.predict import MOTOR_HOOKS
 from ewb_ident.model.programs import parallel_map, threads
 
 # ----------------------------------------------------------------------------- main
@@ -283,8 +283,8 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
         attempt = functools.partial(
             _try, ses, selected=work.selected, still=still, rnd=rnd, bic_threshold=bic_threshold
         )
-        ahead = _RefineAhead(ses, work.selected, rnd, bic_threshold, len(todo))
-        tried = parallel_map(ahead.wrap(attempt), todo)
+        ahead = _RefineAhead(ses, work.selected, rnd, bic_threshold)
+        tried = ahead.run(attempt, todo)
         results = [t for t in tried if t is not None]
         _, best = _best(results)
         # The chosen form's family: a flexible form in its place when the trace shows it
@@ -327,47 +327,71 @@ def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
 
 
 class _RefineAhead:
-    """The flexible forms of a round's supported candidates, tried by a worker that
-    would otherwise wait for the round's last fit (the candidates' fit times differ by
-    up to 20x: a motor candidate with a load torque took 2 s of a 4 s search on the
-    2-core machine, the other core idle for 1 s, and the chosen form's refinement ran
-    after it, 0.5-1.2 s on one core). Only once every candidate of the round has
-    started, only for the best supported candidate so far, and only with more than one
-    thread; a refinement depends on the round's
-    start alone, so :meth:`refined` gives what :func:`_refine` gives after the round."""
+    """A round's candidates fitted side by side, the slow ones first, and the flexible
+    forms of the best supported one so far tried by a worker that would otherwise wait
+    for the round's last fit.
 
-    def __init__(self, ses, selected, rnd: int, bic_threshold: float, n: int) -> None:
+    The candidates' fit times differ by up to 20x: on the 2-core machine a motor
+    candidate with a load torque took 2 s of a 4 s search (4 s cold), the other core
+    idle for up to 1 s, and the chosen form's refinement then ran after the round,
+    0.5-2 s. So the candidates that need motor sub-steps start first, and once every
+    candidate has started, a worker that finishes one refines the best supported
+    candidate so far (a later one may still beat it: its refinement is then not used).
+    Only with more than one thread. The fits and refinements depend on the round's
+    start alone, so :meth:`run` and :meth:`refined` give what the loop and
+    :func:`_refine` after it give."""
+
+    def __init__(self, ses, selected, rnd: int, bic_threshold: float) -> None:
         self._args = (ses, selected, rnd, bic_threshold)
-        self._n, self._started = n, 0
         self._lock = threading.Lock()
         self._done: dict[str, _Tried | None] = {}
-        self._lead = math.inf  # the lowest dBIC of a supported candidate so far
         self._on = threads() > 1
 
-    def wrap(self, attempt: Callable[[Any], _Tried | None]) -> Callable[[Any], _Tried | None]:
-        def run(tmpl):
+    def run(self, attempt: Callable[[Any], _Tried | None], todo: list) -> list[_Tried | None]:
+        """``[attempt(t) for t in todo]``, side by side."""
+        order = sorted(range(len(todo)), key=lambda i: not _sub_stepped(todo[i]))
+        started, lead, claimed = [0], [None], set()
+
+        def one(tmpl):
             with self._lock:
-                self._started += 1
+                started[0] += 1
             got = attempt(tmpl)
-            if got is None or got[0].rejected or not self._on:
-                return got
             with self._lock:
-                # Ahead only for the best supported candidate so far (the round's choice
-                # unless a later one beats it) and only once none waits to start.
-                leads = got[0].delta_bic <= self._lead
-                self._lead = min(self._lead, got[0].delta_bic)
-                last = self._started == self._n
-            if leads and last and got[3].refinements():
-                self._done[got[0].variant] = _refine(*self._args[:1], got, *self._args[1:])
+                if got is not None and not got[0].rejected:
+                    if lead[0] is None or got[0].delta_bic < lead[0][0].delta_bic:
+                        lead[0] = got
+                best = lead[0]
+                ahead = (
+                    self._on and started[0] == len(todo) and best is not None
+                    and best[0].variant not in claimed and bool(best[3].refinements())
+                )  # fmt: skip
+                if ahead:
+                    claimed.add(best[0].variant)
+            if ahead:
+                self._done[best[0].variant] = self._refine(best)
             return got
 
-        return run
+        done = parallel_map(one, [todo[i] for i in order])
+        tried: list[_Tried | None] = [None] * len(todo)
+        for k, i in enumerate(order):
+            tried[i] = done[k]
+        return tried
 
     def refined(self, tried: _Tried) -> _Tried | None:
         """:func:`_refine` of ``tried``, made ahead or now."""
         if tried[0].variant in self._done:
             return self._done[tried[0].variant]
-        return _refine(*self._args[:1], tried, *self._args[1:])
+        return self._refine(tried)
+
+    def _refine(self, tried: _Tried) -> _Tried | None:
+        ses, selected, rnd, bic_threshold = self._args
+        return _refine(ses, tried, selected, rnd, bic_threshold)
+
+
+def _sub_stepped(tmpl: AbstractMechanism) -> bool:
+    """Whether the mechanism acts inside the motor's integration (its fits are the
+    slowest: the motor in sub-steps)."""
+    return any(tmpl.uses(h) for h in MOTOR_HOOKS)
 
 
 def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
