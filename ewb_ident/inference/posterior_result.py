@@ -176,8 +176,6 @@ class PosteriorResult:
         from matplotlib.figure import Figure
         from matplotlib.ticker import MaxNLocator
 
-        from ewb_ident.reporting.style import fixed_margins
-
         names = [n for n in (names or CONTRACT_PARAMS) if n in self.draws] or list(self.names[:4])
         k = len(names)
         fig = Figure(figsize=(2.4 * k + 0.6, 2.4 * k + 0.6))
@@ -207,7 +205,7 @@ class PosteriorResult:
                     axis.set_major_locator(MaxNLocator(3))
                     axis.get_major_formatter().set_powerlimits((-3, 4))
         fig.suptitle(f"posterior of {', '.join(self.trace_names)} ({'+'.join(self.stages)})")
-        fixed_margins(fig, left=0.8, right=0.25, top=0.55, bottom=0.6, gap=0.6, column_gap=0.7)
+        fig.tight_layout()
         return fig
 
 

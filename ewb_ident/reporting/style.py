@@ -45,20 +45,16 @@ def fixed_margins(
     top: float = 0.45,
     bottom: float = 0.55,
     gap: float = 0.4,
-    column_gap: float = 0.2,
 ) -> None:
-    """Place the axes of ``fig``'s grid with fixed margins and gaps between rows and
-    columns, in inches: a layout that costs nothing to draw. (Matplotlib's constrained
-    and tight layouts measure every label first; that took half the drawing of a
-    diagnosis's figures.)"""
+    """Place the axes of ``fig``'s grid with fixed margins and gaps between rows, in
+    inches: a layout that costs nothing to draw. (Matplotlib's constrained layout
+    measures every label first; that took half the drawing of a diagnosis's figures.)"""
     w, h = fig.get_size_inches()
-    grid = fig.axes[0].get_gridspec()
-    rows, cols = grid.nrows, grid.ncols
+    rows = fig.axes[0].get_gridspec().nrows
     height = (h - top - bottom - (rows - 1) * gap) / rows  # of an axes, on average
-    width = (w - left - right - (cols - 1) * column_gap) / cols
     fig.subplots_adjust(
         left=left / w, right=1 - right / w, top=1 - top / h, bottom=bottom / h,
-        hspace=gap / height, wspace=column_gap / width,
+        hspace=gap / height,
     )  # fmt: skip
 
 
