@@ -332,7 +332,7 @@ class _RefineAhead:
     for the round's last fit.
 
     The candidates' fit times differ by up to 20x: on the 2-core machine a motor
-    candidate with a load torque took 2 s of a 4 s search (4 s cold), the other core
+    candidate with a load torque took 2 s (4 s cold) of a 4 s search, the other core
     idle for up to 1 s, and the chosen form's refinement then ran after the round,
     0.5-2 s. So the candidates that need motor sub-steps start first, and once every
     candidate has started, a worker that finishes one refines the best supported
