@@ -493,6 +493,21 @@ def test_a_flexible_form_tried_ahead_by_a_worker_gives_the_loops_diagnosis(monke
     assert two.findings[0].params["drift_per_s"] == pytest.approx(-25.0, rel=0.1)
 
 
+def test_two_traces_of_one_length_share_the_motor_angle_program():
+    """The baseline's motor angle program takes its parameters as arrays: a second
+    trace of the same length, with other fitted values, compiles nothing (with plain
+    floats the values were part of the program's key: one program per trace)."""
+    from ewb_ident.diagnosis.session import Session
+    from ewb_ident.model import programs
+
+    one, two = Session(make_trace("clean")), Session(make_trace("current_limit"))
+    one.baseline()
+    compiled = programs.STATS["compiled"]
+    two.baseline()
+    assert programs.STATS["compiled"] == compiled
+    assert one.values["R"] != two.values["R"]  # other values: floats would key anew
+
+
 def test_the_candidates_fitted_side_by_side_give_the_loops_diagnosis(monkeypatch):
     """A diagnosis fits its candidates (and each fit's starts) in threads: the outcome is
     the one-thread run's, number for number."""

@@ -222,7 +222,9 @@ class Session:
 
     def base_fits_motor_theta(self, v: Mapping[str, float]) -> np.ndarray:
         """The motor stage's angle (degrees) from the logged voltage, baseline values."""
-        p = EWBParams(**{k: v[k] for k in EWBParams().as_dict()})
+        # As arrays: a program's plain-float arguments are part of its key, so float
+        # values compiled one program per trace (same angles, bit for bit).
+        p = EWBParams(**{k: np.asarray(float(v[k])) for k in EWBParams().as_dict()})
         theta = motor_angle_rad(
             p, *on_device((self.trace["voltage_V"], self.trace.dt, float(v["theta0_deg"])))
         )
