@@ -366,3 +366,24 @@ def test_jnp_and_numpy_prior_agree():
     prior = load_priors()["b"]
     xs = np.array([0.1, 0.3, 2.82, 40.0, 60.0])
     assert np.allclose(np.asarray(prior.logpdf(jnp.asarray(xs))), prior.logpdf(xs, np))
+
+
+def test_autocorr_time_is_emcees_integrated_time():
+    """The vectorised autocorrelation time gives emcee's, on chains of every shape the
+    sampler makes (one walker, a few steps, a parameter that never moved: NaN, as
+    emcee's), to rounding."""
+    import emcee
+
+    from ewb_ident.inference.chains import autocorr_time
+
+    rng = np.random.default_rng(3)
+    for k in range(60):
+        n_t, n_w, n_d = (int(rng.integers(lo, hi)) for lo, hi in ((2, 500), (1, 60), (1, 15)))
+        x = rng.standard_normal((n_t, n_w, n_d)).cumsum(axis=0) * 10.0 ** rng.uniform(-6, 3)
+        if k % 4 == 0:
+            x[:, :, 0] = 0.5  # stuck
+        with np.errstate(all="ignore"):
+            want, got = emcee.autocorr.integrated_time(x, tol=0), autocorr_time(x)
+        assert np.array_equal(np.isnan(want), np.isnan(got))
+        ok = np.isfinite(want) & (np.abs(want) > 1e-9)
+        np.testing.assert_allclose(got[ok], want[ok], rtol=1e-12)
