@@ -190,9 +190,10 @@ def _progress_bar(no_progress: bool):
 def _write(out, result, traces) -> None:
     """summary.json, posterior.nc and pairs.png, atomically."""
     from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.reporting.report_figures import pair_figure
 
     text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
-    idata, fig = result.to_inference_data(), result.pair_plot()
+    idata, fig = result.to_inference_data(), pair_figure(result)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(
         [

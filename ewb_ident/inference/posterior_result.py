@@ -4,7 +4,7 @@ identifiability, the predictive bands, and their JSON form."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -166,55 +166,6 @@ class PosteriorResult:
         for group in ("observed_data", "posterior_predictive", "log_likelihood"):
             setattr(idata, group, getattr(idata, group).assign_coords(coords))
         return idata
-
-    def pair_plot(
-        self, names: Iterable[str] | None = None, truth: Mapping[str, float] | None = None
-    ):
-        """A matplotlib Figure: pairwise scatter and marginal histograms (default a, b,
-        c, mu, those sampled), the HDIs dashed, ``truth`` (if given) in red."""
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.ticker import MaxNLocator
-
-        names = [n for n in (names or CONTRACT_PARAMS) if n in self.draws] or list(self.names[:4])
-        k = len(names)
-        fig = Figure(figsize=(2.4 * k + 0.6, 2.4 * k + 0.6))
-        FigureCanvasAgg(fig)
-        flat = {n: self.draws[n].reshape(-1) for n in names}
-        pick = np.linspace(0, flat[names[0]].size - 1, min(3000, flat[names[0]].size)).astype(int)
-        for i, ni in enumerate(names):
-            for j, nj in enumerate(names[: i + 1]):
-                ax = fig.add_subplot(k, k, i * k + j + 1)
-                if i == j:
-                    ax.hist(flat[ni], bins=40, color="0.45")
-                    for v in (self.stats[ni]["hdi_low"], self.stats[ni]["hdi_high"]):
-                        ax.axvline(v, ls="--", color="k", lw=0.8)
-                    if truth and ni in truth:
-                        ax.axvline(truth[ni], color="r")
-                    ax.set_yticks([])
-                else:
-                    ax.plot(flat[nj][pick], flat[ni][pick], ".", ms=1.5, alpha=0.3, color="0.2")
-                    if truth and ni in truth and nj in truth:
-                        ax.plot(truth[nj], truth[ni], "r+", ms=10)
-                if i == k - 1:
-                    ax.set_xlabel(f"{nj} [{info_of(nj).unit}]")
-                if j == 0 and i > 0:
-                    ax.set_ylabel(f"{ni} [{info_of(ni).unit}]")
-                ax.tick_params(labelsize=7)
-                for axis in (ax.xaxis, ax.yaxis):
-                    axis.set_major_locator(MaxNLocator(3))
-                    axis.get_major_formatter().set_powerlimits((-3, 4))
-        fig.suptitle(f"posterior of {', '.join(self.trace_names)} ({'+'.join(self.stages)})")
-        # Fixed margins (inches over the figure's side): a tight layout measures every
-        # label first, a quarter of the figure's drawing time.
-        side = 2.4 * k + 0.6
-        width = (side - 1.05 - 0.7 * (k - 1)) / k  # of a panel, 0.7 in between for labels
-        height = (side - 1.15 - 0.6 * (k - 1)) / k
-        fig.subplots_adjust(
-            left=0.8 / side, right=1 - 0.25 / side, bottom=0.6 / side, top=1 - 0.55 / side,
-            wspace=0.7 / width, hspace=0.6 / height,
-        )  # fmt: skip
-        return fig
 
 
 # ----------------------------------------------------------------------------- assembly

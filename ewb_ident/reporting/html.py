@@ -29,7 +29,13 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import param_info
 from ewb_ident.model.params import SEED
 from ewb_ident.reporting.figures import figure_bytes
-from ewb_ident.reporting.report_figures import figure_bell, figure_fit, figure_overview, phases_of
+from ewb_ident.reporting.report_figures import (
+    figure_bell,
+    figure_fit,
+    figure_overview,
+    pair_figure,
+    phases_of,
+)
 from ewb_ident.reporting.style import CHANNEL_LABELS, PHASE_COLOURS, SCALE, SHOWN_UNITS, png_bytes
 
 
@@ -487,8 +493,8 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
         text = item.get("statement") if isinstance(item, dict) else item
         if text:
             out.append(f'<div class="warn">{_e(text)}</div>')
-    if hasattr(posterior, "pair_plot"):
-        figures["pair.png"] = png_bytes(posterior.pair_plot())
+    if posterior is not None:
+        figures["pair.png"] = png_bytes(pair_figure(posterior))
         out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
         names, corr = posterior.correlation()
         out.append("<p>Posterior correlation of a, b, c, mu:</p>")

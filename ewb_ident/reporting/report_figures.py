@@ -1,25 +1,33 @@
-"""Figures of the validation report and of ``validate``: the recorded channels, measured
-against simulated (with posterior-predictive bands), the fitted bell."""
+"""Figures of the validation report, of ``validate`` and of ``sample``: the recorded
+channels, measured against simulated (with posterior-predictive bands), the fitted bell,
+the posterior's pair plot."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from ewb_ident.data.trace import Trace
+from ewb_ident.inference.log_posterior import CONTRACT_PARAMS, info_of
 from ewb_ident.inference.validate import ValidationResult
 from ewb_ident.model.params import SEED
 from ewb_ident.reporting.style import (
     CHANNEL_LABELS,
     PHASE_COLOURS,
     SCALE,
+    fixed_margins,
     legend_with_phases,
     png_bytes,
     shade_phases,
     short_text,
     subplots,
 )
+
+if TYPE_CHECKING:
+    from ewb_ident.inference.posterior_result import PosteriorResult
 
 
 def phases_of(trace: Trace) -> np.ndarray:
@@ -135,4 +143,48 @@ def validation_figure(trace: Trace, result: ValidationResult):
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time, s")
     fig.suptitle(f"validation on {trace.name}: {result.verdict}", fontsize=10)
+    return fig
+
+
+def pair_figure(
+    posterior: PosteriorResult,
+    names: Iterable[str] | None = None,
+    truth: Mapping[str, float] | None = None,
+) -> Figure:
+    """The posterior's pair plot: pairwise scatter and marginal histograms (default a,
+    b, c, mu, those sampled), the HDIs dashed, ``truth`` (if given) in red."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.ticker import MaxNLocator
+
+    draws, stats = posterior.draws, posterior.stats
+    names = [n for n in (names or CONTRACT_PARAMS) if n in draws] or list(posterior.names[:4])
+    k = len(names)
+    fig = Figure(figsize=(2.4 * k + 0.6, 2.4 * k + 0.6))
+    FigureCanvasAgg(fig)
+    flat = {n: draws[n].reshape(-1) for n in names}
+    pick = np.linspace(0, flat[names[0]].size - 1, min(3000, flat[names[0]].size)).astype(int)
+    for i, ni in enumerate(names):
+        for j, nj in enumerate(names[: i + 1]):
+            ax = fig.add_subplot(k, k, i * k + j + 1)
+            if i == j:
+                ax.hist(flat[ni], bins=40, color="0.45")
+                for v in (stats[ni]["hdi_low"], stats[ni]["hdi_high"]):
+                    ax.axvline(v, ls="--", color="k", lw=0.8)
+                if truth and ni in truth:
+                    ax.axvline(truth[ni], color="r")
+                ax.set_yticks([])
+            else:
+                ax.plot(flat[nj][pick], flat[ni][pick], ".", ms=1.5, alpha=0.3, color="0.2")
+                if truth and ni in truth and nj in truth:
+                    ax.plot(truth[nj], truth[ni], "r+", ms=10)
+            if i == k - 1:
+                ax.set_xlabel(f"{nj} [{info_of(nj).unit}]")
+            if j == 0 and i > 0:
+                ax.set_ylabel(f"{ni} [{info_of(ni).unit}]")
+            ax.tick_params(labelsize=7)
+            for axis in (ax.xaxis, ax.yaxis):
+                axis.set_major_locator(MaxNLocator(3))
+                axis.get_major_formatter().set_powerlimits((-3, 4))
+    fig.suptitle(f"posterior of {', '.join(posterior.trace_names)} ({'+'.join(posterior.stages)})")
+    fixed_margins(fig, left=0.8, right=0.25, bottom=0.6, top=0.55, gap=0.6, column_gap=0.7)
     return fig
