@@ -13,7 +13,9 @@ compiles each again in this process with the options every program has
 (``programs.FAST_COMPILE``), alternately, twice each: the compile time (the faster of
 two) and the median time of one run, and whether the two give the same numbers (largest
 difference relative to the largest output). The package gives the preset to the
-programs it makes faster (``@program(options=FAST_COMPILE)``).
+programs it makes faster (``@program(options=FAST_COMPILE)``). Last, each program with
+its options as the package gives them against the same with XLA's own split of the
+machine code into parts compiled side by side (``split_table``).
 """
 
 from __future__ import annotations
@@ -157,11 +159,13 @@ def _times(exes: dict, leaves) -> dict[str, float]:
     return {k: statistics.median(v) for k, v in times.items()}
 
 
-def compare(lowered, leaves) -> dict:
+def compare(lowered, leaves, sets: dict[str, dict] | None = None) -> dict:
     """Compile times (s), run times (s) and the largest relative difference of the
-    outputs, default options against the fast-compile preset."""
-    sets = {"default": programs.COMPILER_OPTIONS,
-            "fast": programs.COMPILER_OPTIONS | programs.FAST_COMPILE}  # fmt: skip
+    outputs of two option sets (default: the options every program has against the
+    fast-compile preset added)."""
+    sets = sets or {"default": programs.COMPILER_OPTIONS,
+                    "fast": programs.COMPILER_OPTIONS | programs.FAST_COMPILE}  # fmt: skip
+    first, second = sets
     compile_s: dict[str, list[float]] = {k: [] for k in sets}
     exes = {}
     for _ in range(2):
@@ -174,7 +178,7 @@ def compare(lowered, leaves) -> dict:
     run_s = _times(exes, leaves)
     diff = max(
         float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) / max(float(np.max(np.abs(a))), 1e-300)
-        for a, b in zip(outs["default"], outs["fast"], strict=True)
+        for a, b in zip(outs[first], outs[second], strict=True)
         if np.asarray(a).size
     )
     return {"compile": {k: min(v) for k, v in compile_s.items()}, "run": run_s, "diff": diff}
@@ -193,7 +197,8 @@ def main() -> None:
         "ratio | largest difference |")  # fmt: skip
     row("|---|---|---|---|---|---|---|---|")
     counts: dict[str, int] = {}
-    for name, lowered, leaves in capture():
+    captured = capture()
+    for name, lowered, leaves in captured:
         counts[name] = counts.get(name, 0) + 1
         c = compare(lowered, leaves)
         cd, cf = c["compile"]["default"], c["compile"]["fast"]
@@ -201,7 +206,37 @@ def main() -> None:
         row(f"| {name} #{counts[name]} | {cd:.2f} s | {cf:.2f} s | {cd / cf:.2f}x | "
             f"{rd * 1e3:.2f} ms | {rf * 1e3:.2f} ms | {rd / rf:.2f}x | "
             f"{c['diff']:.1e} |")  # fmt: skip
+    split_table(row, captured)
     report.write()
+
+
+def split_table(row, captured) -> None:
+    """Each program compiled with its options as the package gives them and with XLA's
+    own split of the machine code (``xla_cpu_parallel_codegen_split_count`` left out),
+    alternately: compile and run times, and the largest difference of the outputs."""
+    split = "xla_cpu_parallel_codegen_split_count"
+    row("")
+    row(
+        f"| program | compile, XLA's split | compile, {split}="
+        f"{programs.COMPILER_OPTIONS.get(split)} | ratio | run ratio | largest difference |"
+    )
+    row("|---|---|---|---|---|---|")
+    counts: dict[str, int] = {}
+    totals = [0.0, 0.0]
+    for name, lowered, leaves in captured:
+        counts[name] = counts.get(name, 0) + 1
+        own = programs.COMPILER_OPTIONS | (
+            programs.FAST_COMPILE if name == "_mechanism_program" else {}
+        )
+        xla = {k: v for k, v in own.items() if k != split}
+        c = compare(lowered, leaves, {"xla": xla, "package": own})
+        cx, cp = c["compile"]["xla"], c["compile"]["package"]
+        totals[0] += cx
+        totals[1] += cp
+        row(f"| {name} #{counts[name]} | {cx:.2f} s | {cp:.2f} s | {cx / cp:.2f}x | "
+            f"{c['run']['xla'] / c['run']['package']:.2f}x | {c['diff']:.1e} |")  # fmt: skip
+    row(f"| all {len(captured)} | {totals[0]:.2f} s | {totals[1]:.2f} s | "
+        f"{totals[0] / totals[1]:.2f}x | | |")  # fmt: skip
 
 
 if __name__ == "__main__":
