@@ -50,10 +50,11 @@ from ewb_ident.model.programs import parallel_map
 def autocorr_time(x: np.ndarray, c: float = 5.0) -> np.ndarray:
     """emcee's integrated autocorrelation time per column of x (steps, walkers, params):
     ``emcee.autocorr.integrated_time(x, c=c, tol=0)``, every walker's autocorrelation
-    function in one FFT instead of one per walker and parameter (their 14,000 small
-    transforms took 0.5 s of a 2.4 s posterior). The same operations in the same order
-    on each series, so the same numbers (``tests/test_posterior.py`` checks them
-    equal to emcee's, bit for bit)."""
+    function from one real FFT of all series instead of one complex FFT per walker and
+    parameter (some 14,000 small transforms per posterior;
+    ``benchmarks/bench_autocorr.py``). The same estimate, the walkers summed in emcee's
+    order; the transforms' round-off differs, so the times agree with emcee's to about
+    1e-15 relative (``tests/test_posterior.py`` checks 1e-12 on 60 chain shapes)."""
     x = np.asarray(x, dtype=float)
     n_t, n_w, n_d = x.shape
     n = emcee.autocorr.next_pow_two(n_t)
