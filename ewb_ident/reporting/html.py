@@ -465,6 +465,7 @@ def _provenance(traces: Sequence[Trace], command: str | None) -> str:
 
 
 def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[str, bytes]) -> str:
+    """Section 5, for a posterior (``post`` is its ``to_summary_json()``)."""
     out = ["<h2>5. Posterior (MCMC)</h2>"]
     conv = post.get("converged")
     out.append(
@@ -493,17 +494,16 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
         text = item.get("statement") if isinstance(item, dict) else item
         if text:
             out.append(f'<div class="warn">{_e(text)}</div>')
-    if posterior is not None:
-        figures["pair.png"] = png_bytes(pair_figure(posterior))
-        out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
-        names, corr = posterior.correlation()
-        out.append("<p>Posterior correlation of a, b, c, mu:</p>")
-        out.append(
-            _table(
-                ["", *names],
-                [[_e(n), *(_num(v, 3) for v in row)] for n, row in zip(names, corr, strict=True)],
-            )
+    figures["pair.png"] = png_bytes(pair_figure(posterior))
+    out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
+    names, corr = posterior.correlation()
+    out.append("<p>Posterior correlation of a, b, c, mu:</p>")
+    out.append(
+        _table(
+            ["", *names],
+            [[_e(n), *(_num(v, 3) for v in row)] for n, row in zip(names, corr, strict=True)],
         )
+    )
     return "".join(out)
 
 
