@@ -207,8 +207,8 @@ def made_once(lock, pending: dict, key, lookup: Callable, make: Callable) -> tup
 #: instead) halves the compilation of a mechanism's program (measured 1.45-1.81 s to
 #: 0.77-1.17 s on the 2-core machine, jaxlib 0.10.2) for the same speed of the program;
 #: residuals equal bit for bit, Jacobians to 1e-13 relative. And the machine code of a
-#: program generated in 4 parts side by side, not XLA's default split: its compilation
-#: about 9 % shorter on the 2-core machine, the programs bit for bit the same
+#: program generated in 4 parts side by side, not XLA's default split: it compiles
+#: 1.1x faster on the 2-core machine, the programs bit for bit the same
 #: (``python benchmarks/bench_compiler_options.py``). A jaxlib that does not know an
 #: option compiles without it.
 COMPILER_OPTIONS: dict[str, Any] = {
