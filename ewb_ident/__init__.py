@@ -17,9 +17,62 @@ for importing JAX.
 from __future__ import annotations
 
 import importlib
+import os
+import sys
+import warnings
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+
+#: XLA's CPU compiler emits a ``while`` loop whose one iteration reads and writes fewer
+#: bytes than this as one native loop; a larger one runs as a sequence of kernels
+#: dispatched one by one on every iteration (XLA's default threshold: 1024 bytes). The
+#: models' loops (the motor's sub-steps, with a Jacobian's tangents: a few kB an
+#: iteration) are each some 50-200 kernels of a few numbers, so dispatch dominated them:
+#: natively a mechanism's residuals and Jacobian run 3-5x faster (e.g. stiction, 13.7
+#: to 2.8 ms; ``python benchmarks/bench_mechanism_cost.py``) and compile faster, their
+#: results equal to about 1e-11 relative. Set through ``XLA_FLAGS``, which XLA reads
+#: once, when JAX starts its CPU backend: see :func:`_native_small_loops`.
+SMALL_LOOP_BYTES = 1 << 20
+_LOOP_KEY = "xla_cpu_small_while_loop_byte_threshold"
+_EXTRA = "--xla_backend_extra_options="
+
+
+def _native_small_loops() -> str:
+    """Add :data:`SMALL_LOOP_BYTES` to ``XLA_FLAGS`` (into the user's
+    ``--xla_backend_extra_options`` if they gave any) unless they set the threshold
+    themselves, and return the threshold JAX's backend uses (part of the compiled
+    programs' cache key). When JAX's backend was started before this package was
+    imported, the flag cannot take effect: a warning says so, and XLA's default holds
+    (the results agree to about 1e-11 relative, the fits run slower)."""
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    for f in flags:
+        if f.startswith(_EXTRA) and f"{_LOOP_KEY}=" in f:
+            return f.split(f"{_LOOP_KEY}=", 1)[1].split(",", 1)[0]  # the user's own
+    bridge = sys.modules.get("jax._src.xla_bridge")
+    started = getattr(bridge, "backends_are_initialized", lambda: False)
+    if started():
+        warnings.warn(
+            "ewb_ident was imported after JAX had started its CPU backend, so its XLA "
+            f"option ({_EXTRA}{_LOOP_KEY}={SMALL_LOOP_BYTES}) is off and fits and "
+            "diagnoses run 2-5x slower; import ewb_ident before any JAX computation, or "
+            "set that option in XLA_FLAGS yourself",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return "default"
+    ours = f"{_LOOP_KEY}={SMALL_LOOP_BYTES}"
+    given = [i for i, f in enumerate(flags) if f.startswith(_EXTRA)]
+    if given:
+        flags[given[-1]] += f",{ours}"
+    else:
+        flags.append(_EXTRA + ours)
+    os.environ["XLA_FLAGS"] = " ".join(flags)
+    return str(SMALL_LOOP_BYTES)
+
+
+#: The small-loop threshold in effect (see :data:`SMALL_LOOP_BYTES`).
+XLA_SMALL_LOOP_BYTES = _native_small_loops()
 
 _PUBLIC = {
     "FitError": "inference.problem",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -271,3 +273,73 @@ def test_a_bound_program_gives_the_same_results_without_hashing_its_arguments_ag
     assert y9.shape == (9,) and _counts()["compiled"] - c2["compiled"] == 1
     with pytest.raises(TypeError, match="after the bound ones must be arrays"):
         _apply.bind(m)(x, 2)
+
+
+# A loop whose iteration reads and writes some 3 kB (over XLA's default 1 kB), and its
+# Jacobian compiled (run here, and in a process without the package).
+_WIDE_LOOP = """
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+
+def loop(p):
+    def step(s, v):
+        return jnp.tanh(s * p[0]) + v * p[1], s[0] * s[-1]
+
+    return jax.lax.scan(step, jnp.linspace(0.0, 1.0, 200), jnp.sin(jnp.arange(300.0)))[1]
+
+p = jnp.array([1.3, 0.7])
+compiled = jax.jit(jax.jacfwd(loop)).lower(p).compile()
+native, out = "xla_cpu_small_call" in compiled.as_text(), compiled(p)
+"""
+
+def test_the_models_loops_compile_as_native_loops_with_the_same_numbers():
+    """Importing the package sets XLA's small-loop threshold before JAX starts (so this
+    process has it), and a loop of a few kB an iteration is then one native loop (XLA's
+    ``xla_cpu_small_call``), not kernels dispatched one by one; a process without the
+    package compiles it as kernels and gets the same numbers to round-off."""
+    import json
+    import subprocess
+    import sys
+
+    import ewb_ident
+
+    assert ewb_ident.XLA_SMALL_LOOP_BYTES == str(ewb_ident.SMALL_LOOP_BYTES)
+    here: dict = {}
+    exec(_WIDE_LOOP, here)
+    assert here["native"]
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    script = _WIDE_LOOP + "import json; print(json.dumps([native, out.tolist()]))"
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
+    )
+    native, plain = json.loads(done.stdout.strip().splitlines()[-1])
+    assert not native  # XLA's default: kernels
+    np.testing.assert_allclose(here["out"], np.array(plain), rtol=1e-12, atol=1e-300)
+
+
+def test_a_users_xla_flags_are_kept_and_a_late_import_says_the_option_is_off(monkeypatch):
+    """The threshold joins the user's own backend options; a threshold of the user's is
+    theirs; imported after JAX started its backend, the package warns and reports XLA's
+    default (the programs' cache key holds it)."""
+    import sys
+    import types
+
+    import ewb_ident
+
+    key = "xla_cpu_small_while_loop_byte_threshold"
+    fresh = types.SimpleNamespace(backends_are_initialized=lambda: False)
+    monkeypatch.setitem(sys.modules, "jax._src.xla_bridge", fresh)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_extra_options=a=1 --xla_dump_to=/x")
+    assert ewb_ident._native_small_loops() == str(ewb_ident.SMALL_LOOP_BYTES)
+    assert os.environ["XLA_FLAGS"] == (
+        f"--xla_backend_extra_options=a=1,{key}={ewb_ident.SMALL_LOOP_BYTES} --xla_dump_to=/x"
+    )
+    monkeypatch.setenv("XLA_FLAGS", f"--xla_backend_extra_options={key}=4096,b=2")
+    assert ewb_ident._native_small_loops() == "4096"
+    assert os.environ["XLA_FLAGS"] == f"--xla_backend_extra_options={key}=4096,b=2"
+    started = types.SimpleNamespace(backends_are_initialized=lambda: True)
+    monkeypatch.setitem(sys.modules, "jax._src.xla_bridge", started)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/x")
+    with pytest.warns(RuntimeWarning, match="import ewb_ident before any JAX computation"):
+        assert ewb_ident._native_small_loops() == "default"
+    assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/x"

@@ -9,7 +9,8 @@ program. Each compiled program is kept under a key made of
 - the function's name;
 - the structure and values of the fixed arguments (``repr``);
 - the structure, shapes and dtypes of the traced arguments;
-- the JAX and jaxlib versions, the float precision, the backend; and
+- the JAX and jaxlib versions, the float precision, the backend, XLA's small-loop
+  threshold (:data:`ewb_ident.SMALL_LOOP_BYTES`); and
 - a digest of this package's source files (a changed model never loads old code).
 
 On a hit nothing is traced, lowered or compiled. JAX's own on-disk cache stores only
@@ -374,12 +375,15 @@ def _source_digest() -> str:
 def _environment() -> str:
     import jaxlib
 
+    from ewb_ident import XLA_SMALL_LOOP_BYTES
+
     return "|".join(
         (
             jax.__version__,
             jaxlib.__version__,
             str(jax.config.jax_enable_x64),
             jax.default_backend(),
+            XLA_SMALL_LOOP_BYTES,
             _source_digest(),
         )
     )
