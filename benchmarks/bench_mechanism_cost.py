@@ -10,8 +10,11 @@ process and with the package's options, the residuals alone and the residuals wi
 Jacobian, then runs the two alternately (median of 9 runs each): the ratio says how much
 of an evaluation the Jacobian's tangents cost, and the kernel counts (XLA fusions) why.
 With motor mechanisms the motor is integrated in sub-steps (``n_sub`` per sample), each
-a few dozen kernels of a few numbers, so a program's run time follows its kernel count
-times the number of sub-steps.
+a few dozen kernels of a few numbers. With XLA's default small-loop threshold each kernel
+was dispatched on its own on every sub-step, so a program's run time followed its kernel
+count times the number of sub-steps; with the package's threshold
+(:data:`ewb_ident.SMALL_LOOP_BYTES`) the loop runs natively and the count says how much
+code a sub-step is (``bench_native_loops.py`` compares the two).
 """
 
 from __future__ import annotations

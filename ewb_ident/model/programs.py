@@ -223,7 +223,9 @@ COMPILER_OPTIONS: dict[str, Any] = {
 #: with it (e.g. stiction with wedge load torque, residuals and Jacobian 38 -> 22 ms) and
 #: compiles in about the same time, its outputs equal to 2e-14 relative; the seed
 #: model's programs compile 20-25 % slower with it, so it is not every program's
-#: (``python benchmarks/bench_compiler_options.py``).
+#: (``python benchmarks/bench_compiler_options.py``). Those figures predate native loops
+#: (:data:`ewb_ident.SMALL_LOOP_BYTES`); a by-hand A/B since then still found the
+#: stiction diagnosis faster with the preset, cold and filled.
 FAST_COMPILE: dict[str, Any] = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
 #: Option sets this jaxlib refused (one holds an option it does not know).
 _REFUSED: set[tuple] = set()
