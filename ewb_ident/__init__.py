@@ -29,9 +29,9 @@ __version__ = "0.1.0"
 #: dispatched one by one on every iteration (XLA's default threshold: 1024 bytes). The
 #: models' loops (the motor's sub-steps, with a Jacobian's tangents: a few kB an
 #: iteration) are each some 50-200 kernels of a few numbers, so dispatch dominated them:
-#: natively a mechanism's residuals and Jacobian run 3-5x faster (e.g. stiction, 13.7
-#: to 2.8 ms; ``python benchmarks/bench_mechanism_cost.py``) and compile faster, their
-#: results equal to about 1e-11 relative. Set through ``XLA_FLAGS``, which XLA reads
+#: natively a mechanism's residuals and Jacobian run 1.4-7x faster and compile as fast
+#: (``python benchmarks/bench_native_loops.py``), their results equal up to round-off
+#: (under 1e-11 relative on the shipped concealed diagnoses). Set through ``XLA_FLAGS``, which XLA reads
 #: once, when JAX starts its CPU backend: see :func:`_native_small_loops`.
 SMALL_LOOP_BYTES = 1 << 20
 _LOOP_KEY = "xla_cpu_small_while_loop_byte_threshold"
@@ -44,7 +44,7 @@ def _native_small_loops() -> str:
     themselves, and return the threshold JAX's backend uses (part of the compiled
     programs' cache key). When JAX's backend was started before this package was
     imported, the flag cannot take effect: a warning says so, and XLA's default holds
-    (the results agree to about 1e-11 relative, the fits run slower)."""
+    (the fits run slower; their results differ by round-off)."""
     flags = os.environ.get("XLA_FLAGS", "").split()
     for f in flags:
         if f.startswith(_EXTRA) and f"{_LOOP_KEY}=" in f:
