@@ -31,8 +31,8 @@ __version__ = "0.1.0"
 #: iteration) are each some 50-200 kernels of a few numbers, so dispatch dominated them:
 #: natively a mechanism's residuals and Jacobian run 1.4-7x faster and compile as fast
 #: (``python benchmarks/bench_native_loops.py``), their results equal up to round-off
-#: (under 1e-11 relative on the shipped concealed diagnoses). Set through ``XLA_FLAGS``, which XLA reads
-#: once, when JAX starts its CPU backend: see :func:`_native_small_loops`.
+#: (under 1e-11 relative on the shipped concealed diagnoses). Set through ``XLA_FLAGS``,
+#: which XLA reads once, when JAX starts its CPU backend: see :func:`_native_small_loops`.
 SMALL_LOOP_BYTES = 1 << 20
 _LOOP_KEY = "xla_cpu_small_while_loop_byte_threshold"
 _EXTRA = "--xla_backend_extra_options="
