@@ -4,7 +4,7 @@ the posterior's pair plot."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -146,18 +146,14 @@ def validation_figure(trace: Trace, result: ValidationResult):
     return fig
 
 
-def pair_figure(
-    posterior: PosteriorResult,
-    names: Iterable[str] | None = None,
-    truth: Mapping[str, float] | None = None,
-) -> Figure:
-    """The posterior's pair plot: pairwise scatter and marginal histograms (default a,
-    b, c, mu, those sampled), the HDIs dashed, ``truth`` (if given) in red."""
+def pair_figure(posterior: PosteriorResult) -> Figure:
+    """The posterior's pair plot: pairwise scatter and marginal histograms of a, b, c, mu
+    (those sampled; else the first four parameters), the HDIs dashed."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.ticker import MaxNLocator
 
     draws, stats = posterior.draws, posterior.stats
-    names = [n for n in (names or CONTRACT_PARAMS) if n in draws] or list(posterior.names[:4])
+    names = [n for n in CONTRACT_PARAMS if n in draws] or list(posterior.names[:4])
     k = len(names)
     fig = Figure(figsize=(2.4 * k + 0.6, 2.4 * k + 0.6))
     FigureCanvasAgg(fig)
@@ -170,13 +166,9 @@ def pair_figure(
                 ax.hist(flat[ni], bins=40, color="0.45")
                 for v in (stats[ni]["hdi_low"], stats[ni]["hdi_high"]):
                     ax.axvline(v, ls="--", color="k", lw=0.8)
-                if truth and ni in truth:
-                    ax.axvline(truth[ni], color="r")
                 ax.set_yticks([])
             else:
                 ax.plot(flat[nj][pick], flat[ni][pick], ".", ms=1.5, alpha=0.3, color="0.2")
-                if truth and ni in truth and nj in truth:
-                    ax.plot(truth[nj], truth[ni], "r+", ms=10)
             if i == k - 1:
                 ax.set_xlabel(f"{nj} [{info_of(nj).unit}]")
             if j == 0 and i > 0:

@@ -55,13 +55,13 @@ def fixed_margins(
     grid = fig.axes[0].get_gridspec()
     rows, cols = grid.nrows, grid.ncols
     height = (h - top - bottom - (rows - 1) * gap) / rows  # of an axes, on average
+    wspace = None  # Matplotlib's own
+    if column_gap is not None:
+        wspace = column_gap / ((w - left - right - (cols - 1) * column_gap) / cols)
     fig.subplots_adjust(
         left=left / w, right=1 - right / w, top=1 - top / h, bottom=bottom / h,
-        hspace=gap / height,
+        hspace=gap / height, wspace=wspace,
     )  # fmt: skip
-    if column_gap is not None:
-        width = (w - left - right - (cols - 1) * column_gap) / cols
-        fig.subplots_adjust(wspace=column_gap / width)
 
 
 def png_bytes(fig: Figure, *, dpi: int = 110, tight: bool = True) -> bytes:
