@@ -66,9 +66,11 @@ def capture() -> list[tuple]:
 
 
 def _compiled(f, u, data):
-    """``f`` compiled as the package compiles a mechanism program, and its kernel count."""
+    """``f`` compiled as the package compiles a mechanism program, its kernel count and
+    the seconds the tracing, lowering and compilation took."""
+    t0 = time.perf_counter()
     exe = programs._compile(jax.jit(f).lower(u, data), programs.FAST_COMPILE)
-    return exe, exe.as_text().count(" fusion(")
+    return exe, exe.as_text().count(" fusion("), time.perf_counter() - t0
 
 
 def compare(problem, u, data) -> dict:
@@ -84,14 +86,15 @@ def compare(problem, u, data) -> dict:
     }
     times: dict[str, list[float]] = {k: [] for k in exes}
     for _ in range(REPEATS):
-        for k, (exe, _) in exes.items():
+        for k, (exe, _, _) in exes.items():
             t0 = time.perf_counter()
             jax.block_until_ready(exe(u, data))
             times[k].append(time.perf_counter() - t0)
     n = int(np.asarray(data["meas"][problem.channels[0]]).shape[0])
     return {
         "run": {k: statistics.median(v) for k, v in times.items()},
-        "kernels": {k: kern for k, (_, kern) in exes.items()},
+        "kernels": {k: kern for k, (_, kern, _) in exes.items()},
+        "compile": {k: secs for k, (_, _, secs) in exes.items()},
         "substeps": n * problem.n_sub,
         "tangents": int(np.asarray(u).size),
     }

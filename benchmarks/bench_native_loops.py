@@ -12,10 +12,10 @@ set), alternately, :data:`ROUNDS` times each; the table gives the faster of the 
 Each process diagnoses ``datasets/concealed/stiction.csv`` twice (the first call
 compiles its programs), fits and samples the posterior of ``datasets/steps_200hz.csv``
 twice each (``min_ess=1000``), and compiles and runs (median of 9) each mechanism program
-of the diagnosis (its residuals and Jacobian), as ``bench_mechanism_cost.py`` captures
-them. The last column says whether the two sides found the same (the diagnosis's
-findings and candidates' dBIC to 1e-8 relative, the fit's parameters and the posterior's
-means to 1e-8 relative).
+of the diagnosis (its residuals and Jacobian) with ``bench_mechanism_cost.py``'s
+``capture`` and ``compare``. The last column says whether the two sides found the same
+(the diagnosis's findings and candidates' dBIC, the fit's parameters and the posterior's
+means, each to 1e-8 relative).
 """
 
 from __future__ import annotations
@@ -35,14 +35,12 @@ ROUNDS = 2
 DEFAULT = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1024"
 
 _ONE_SIDE = """
-import json, statistics, sys, time
+import json, sys, time
 sys.path.insert(0, {bench!r})
 import bench_mechanism_cost as m  # one thread; imports the package (its XLA flag)
-import jax
 import ewb_ident
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.posterior import sample
-from ewb_ident.inference import augmented
 
 out = {{"threshold": ewb_ident.XLA_SMALL_LOOP_BYTES}}
 
@@ -69,19 +67,10 @@ out["findings"] = [x.effect for x in d.findings]
 out["dbic"] = [float(c.delta_bic) for c in d.candidates]
 out["programs"] = []
 for problem, u, data in caps:
-    def with_jacobian(v, dd, problem=problem):
-        return augmented._mechanism_program.__wrapped__(problem, v, dd)
-    t0 = time.perf_counter()
-    exe, kernels = m._compiled(with_jacobian, u, data)
-    compile_s = time.perf_counter() - t0
-    runs = []
-    for _ in range(m.REPEATS):
-        t0 = time.perf_counter()
-        jax.block_until_ready(exe(u, data))
-        runs.append(time.perf_counter() - t0)
+    c = m.compare(problem, u, data)
     name = " + ".join(t.variant for t in problem.templates())
-    out["programs"].append([f"{{name}} ({{', '.join(problem.stages)}})", compile_s,
-                            statistics.median(runs)])
+    out["programs"].append([f"{{name}} ({{', '.join(problem.stages)}})",
+                            c["compile"]["jacobian"], c["run"]["jacobian"]])
 print(json.dumps(out))
 """
 
