@@ -167,3 +167,42 @@ def test_report_renders_the_posterior_section():
     lo, hi = _predictive_bands(post, trace)["force_N"]
     inside = float(np.mean((trace["force_N"] >= lo) & (trace["force_N"] <= hi)))
     assert 0.8 < inside < 0.97, inside
+
+
+def test_phase_shading_draws_the_pixels_of_one_axvspan_per_run():
+    """``shade_phases`` draws one collection per phase colour; the figure must be the
+    one a span per run gives (pixels, and x limits to round-off), on chattering labels whose runs
+    include one-sample ones, and an axis whose curve ends before the shading does."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from ewb_ident.reporting.style import PHASE_COLOURS, shade_phases
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 3.0, 3001)
+    names = np.array(list(PHASE_COLOURS) + ["unknown"])
+    labels = names[np.repeat(rng.integers(0, names.size, 600), rng.integers(1, 20, 600))][: t.size]
+
+    def draw(shade) -> tuple[bytes, list]:
+        fig = Figure(figsize=(6, 4), dpi=80)
+        axes = fig.subplots(2, 1)
+        for k, ax in enumerate(axes):
+            shade(ax, t, labels)
+            ax.plot(t[: t.size // (k + 1)], np.sin(t[: t.size // (k + 1)]), color="k")
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()
+        return bytes(canvas.buffer_rgba()), [ax.get_xlim() for ax in axes]
+
+    def one_span_per_run(ax, t, labels):
+        start = 0
+        for k in range(1, t.size + 1):
+            if k == t.size or labels[k] != labels[start]:
+                colour = PHASE_COLOURS.get(str(labels[start]), "#ffffff")
+                ax.axvspan(t[start], t[min(k, t.size - 1)], color=colour, lw=0, zorder=0)
+                start = k
+
+    pixels, limits = draw(shade_phases)
+    want_pixels, want_limits = draw(one_span_per_run)
+    assert len(set(labels)) == names.size and np.sum(labels[1:] != labels[:-1]) > 100
+    np.testing.assert_allclose(limits, want_limits, rtol=1e-12)  # a span's xmin + width
+    assert pixels == want_pixels
