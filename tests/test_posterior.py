@@ -8,6 +8,7 @@ behaviour, with fixed seeds.
 
 import json
 import math
+import os
 import subprocess
 import sys
 import warnings
@@ -291,6 +292,27 @@ def test_cli_writes_contract_files_and_same_seed_same_summary(tmp_path):
     assert (tmp_path / "a" / "summary.json").read_text() == (
         tmp_path / "b" / "summary.json"
     ).read_text()
+    # The command as a user runs it (``cli.main``), which keeps dask out of the process:
+    # the same files as in this process, where xarray and ArviZ use dask.
+    code = (
+        "import atexit, sys; from ewb_ident.cli import main; "
+        "atexit.register(lambda: print('dask imported:', sys.modules.get('dask') is not None)); "
+        f"sys.argv = ['ewb-ident', *{[*args, '--out', str(tmp_path / 'c')]!r}]; main()"
+    )
+    env = dict(os.environ, EWB_IDENT_CACHE=str(tmp_path / "cache"))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert proc.returncode == 3, proc.stderr
+    assert "dask imported: False" in proc.stdout
+    assert (tmp_path / "a" / "summary.json").read_text() == (
+        tmp_path / "c" / "summary.json"
+    ).read_text()
+    az = _arviz()
+    mine, theirs = (az.from_netcdf(tmp_path / d / "posterior.nc") for d in "ac")
+    assert mine.groups() == theirs.groups()
+    for group in mine.groups():
+        ours, other = (getattr(d, group) for d in (mine, theirs))
+        ours.attrs.pop("created_at"), other.attrs.pop("created_at")  # the time of writing
+        assert ours.identical(other), group
 
 
 @pytest.mark.parametrize(

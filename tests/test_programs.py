@@ -343,3 +343,125 @@ def test_a_users_xla_flags_are_kept_and_a_late_import_says_the_option_is_off(mon
     with pytest.warns(RuntimeWarning, match="import ewb_ident before any JAX computation"):
         assert ewb_ident._native_small_loops() == "default"
     assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/x"
+
+
+def _work(x) -> list:
+    """Three programs in a fixed order, as a diagnosis asks for its fits' programs. (Each
+    test gives its own length of ``x``: a program compiled again in one process comes
+    from JAX's cache, which the tests switch on, and such a program does not serialise
+    whole; see tests/conftest.py.)"""
+    m = _Scaled(2.0, jnp.asarray(0.5))
+    return [_apply(m, x, 2), _apply(m, x, 3), _shifted(m, x)]
+
+
+@pytest.fixture
+def reads(monkeypatch):
+    """Which thread read each stored program from disk: (thread name, key), in order;
+    two threads allowed."""
+    import threading
+
+    seen: list[tuple[str, str]] = []
+    read = programs._read
+
+    def spy(key):
+        seen.append((threading.current_thread().name, key))
+        return read(key)
+
+    monkeypatch.setattr(programs, "_read", spy)
+    monkeypatch.setenv("EWB_IDENT_THREADS", "2")
+    return seen
+
+
+AHEAD = "ewb-ident programs ahead"
+
+
+def test_the_programs_the_last_run_used_are_loaded_ahead_in_the_background(folder, reads):
+    x = jnp.linspace(0.0, 1.0, 21)
+    with programs.prefetching("work"):
+        first = _work(x)  # compiled, stored, and recorded in the order asked
+    (record,) = folder.glob("*.keys")
+    keys = [k for _, k in reads]  # each looked up on disk once, and not found
+    assert record.read_text().split() == keys[1:]
+    reads.clear()
+    programs.clear_memory()  # as a new process would start
+    c0 = _counts()
+    with programs.prefetching("work"):
+        m = _Scaled(2.0, jnp.asarray(0.5))
+        head = _apply(m, x, 2)  # the first program names the work: the thread starts
+        programs._SCOPE[0].thread.join()
+        rest = [_apply(m, x, 3), _shifted(m, x)]
+    assert sorted(reads) == sorted([("MainThread", keys[0]), *((AHEAD, k) for k in keys[1:])])
+    assert _counts()["disk"] - c0["disk"] == 3 and _counts()["compiled"] == c0["compiled"]
+    for got, want in zip([head, *rest], first, strict=True):
+        jax.tree_util.tree_map(np.testing.assert_array_equal, got, want)
+    assert programs._AHEAD == {} and programs._SCOPE[0] is None
+
+
+def test_a_program_asked_for_before_the_loader_reaches_it_is_loaded_by_the_caller(
+    folder, reads, monkeypatch
+):
+    import threading
+
+    x = jnp.linspace(0.0, 1.0, 22)
+    with programs.prefetching("work"):
+        first = _work(x)
+    keys = [k for _, k in reads]
+    reads.clear()
+    programs.clear_memory()
+    held, release = threading.Event(), threading.Event()
+    spy = programs._read
+
+    def slow(key):  # the loader is held on its first program
+        if threading.current_thread().name == AHEAD:
+            held.set()
+            release.wait(10)
+        return spy(key)
+
+    monkeypatch.setattr(programs, "_read", slow)
+    c0 = _counts()
+    with programs.prefetching("work"):
+        m = _Scaled(2.0, jnp.asarray(0.5))
+        got = [_apply(m, x, 2)]
+        assert held.wait(10)
+        got.append(_shifted(m, x))  # still queued: this thread takes it and loads it
+        release.set()
+        got.insert(1, _apply(m, x, 3))  # being loaded by the thread: waited for
+    assert sorted(reads) == sorted(
+        [("MainThread", keys[0]), (AHEAD, keys[1]), ("MainThread", keys[2])]
+    )
+    assert _counts()["disk"] - c0["disk"] == 3 and _counts()["compiled"] == c0["compiled"]
+    for a, b in zip(got, first, strict=True):
+        jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
+
+
+def test_a_damaged_record_or_a_missing_program_only_costs_the_loads(folder, reads):
+    x = jnp.linspace(0.0, 1.0, 23)
+    with programs.prefetching("work"):
+        first = _work(x)
+    (record,) = folder.glob("*.keys")
+    keys = record.read_text().split()
+    record.write_text("\n".join(["not a key", "0" * 64, *keys]) + "\n")
+    (folder / f"{keys[-1]}.bin").unlink()
+    programs.clear_memory()
+    c0 = _counts()
+    with programs.prefetching("work"):
+        again = _work(x)
+    for a, b in zip(again, first, strict=True):
+        jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
+    assert _counts()["compiled"] - c0["compiled"] == 1  # the one deleted
+    assert _counts()["disk"] - c0["disk"] == 2
+    assert record.read_text().split() == keys  # recorded afresh
+
+
+def test_nothing_is_loaded_ahead_with_one_thread_or_without_a_folder(folder, monkeypatch):
+    x = jnp.linspace(0.0, 1.0, 24)
+    monkeypatch.setenv("EWB_IDENT_THREADS", "1")
+    with programs.prefetching("work"):
+        _work(x)
+        assert programs._SCOPE[0] is None
+    monkeypatch.setenv("EWB_IDENT_THREADS", "2")
+    programs.set_cache_folder(None)
+    with programs.prefetching("work"):
+        _work(x)
+        assert programs._SCOPE[0] is None
+    assert list(folder.glob("*.keys")) == []

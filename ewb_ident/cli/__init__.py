@@ -77,6 +77,14 @@ def main() -> None:
     signal.signal(signal.SIGINT, _interrupted)
     signal.signal(signal.SIGTERM, _interrupted)
 
+    command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
+    if command != "study":
+        # Only ``study --scheduler`` uses dask. Where it is installed, xarray and ArviZ
+        # import it, and dask.distributed, for every array they make (0.4-0.5 s of
+        # ``sample``, for arrays that are all NumPy). A ``None`` in ``sys.modules``
+        # makes ``import dask`` raise ImportError, which both take for "no dask"; the
+        # files are the same (tests/test_posterior.py).
+        sys.modules.setdefault("dask", None)
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -97,7 +97,7 @@ from ewb_ident.inference.augmented import (
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.predict import MOTOR_HOOKS
-from ewb_ident.model.programs import parallel_map, threads
+from ewb_ident.model.programs import parallel_map, prefetching, threads
 
 # ----------------------------------------------------------------------------- main
 
@@ -143,8 +143,15 @@ def diagnose(
     Each call compiles models for its trace's shape and the mechanisms it tries. A
     process that diagnoses many traces of different shapes should call
     ``jax.clear_caches()`` between them (``studies/diagnosis_accuracy.py`` does): the
-    compiled code otherwise accumulates until the kernel's limit on memory maps.
+    compiled code otherwise accumulates until the kernel's limit on memory maps. With
+    the on-disk program cache, the programs the last diagnosis of a trace of this shape
+    used are loaded ahead in the background (:func:`~ewb_ident.model.programs.prefetching`).
     """
+    with prefetching(f"diagnose {bic_threshold!r} {max_mechanisms!r} {catalog!r}"):
+        return _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress)
+
+
+def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> DiagnosisResult:
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
 

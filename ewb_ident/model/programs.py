@@ -83,6 +83,9 @@ def program(fun: Callable | None = None, *, options: Mapping[str, Any] | None = 
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return fun(*args)  # called inside another program: part of it
         key = _key(name, static, treedef, leaves)
+        scope = _SCOPE[0]
+        if scope is not None:
+            scope.asked(key)
 
         def compiled():
             # A flat list in, so the stored program's input structure holds no module
@@ -405,6 +408,18 @@ def _key(name: str, static: Any, treedef: Any, leaves: list) -> str:
 
 
 def _load(key: str):
+    """The stored program of ``key``: loaded ahead by :func:`prefetching`'s thread (waited
+    for if it is loading it now), else read from disk here; ``None`` if there is none."""
+    with _LOCK:
+        ahead = _AHEAD.pop(key, None)  # queued (None): not loaded yet, so read here
+    if ahead is not None:
+        exe = ahead.result()
+        if exe is not None:
+            return exe
+    return _read(key)
+
+
+def _read(key: str):
     folder = cache_folder()
     if folder is None:
         return None
@@ -428,8 +443,17 @@ def _load(key: str):
         return None
 
 
-@functools.cache
+_LINALG_LOCK = threading.Lock()
+
+
 def _prime_linalg() -> None:
+    """:func:`_set_up_linalg` once per process, whichever thread loads a program first."""
+    with _LINALG_LOCK:
+        _set_up_linalg()
+
+
+@functools.cache
+def _set_up_linalg() -> None:
     """Set up jaxlib's LAPACK kernels before a stored program is loaded: jaxlib does it
     when it first compiles a LAPACK call, and a stored program that calls one crashes
     the process (a segmentation fault) if loaded before. jax's own deserialisation of
@@ -477,7 +501,8 @@ def _store(key: str, exe) -> None:
 
 
 def _trim(folder: Path) -> None:
-    files = [(p.stat().st_mtime, p.stat().st_size, p) for p in folder.glob("*.bin")]
+    paths = [*folder.glob("*.bin"), *folder.glob("*.keys")]
+    files = [(p.stat().st_mtime, p.stat().st_size, p) for p in paths]
     total = sum(size for _, size, _ in files)
     for _, size, path in sorted(files):
         if total <= MAX_DISK_BYTES:
@@ -485,6 +510,120 @@ def _trim(folder: Path) -> None:
         with contextlib.suppress(OSError):
             path.unlink()
             total -= size
+
+
+# ----------------------------------------------------------------------------- ahead
+
+#: The active :func:`prefetching` scope, or ``None``.
+_SCOPE: list[_Scope | None] = [None]
+#: Stored programs the scope's thread is to load ahead: ``None`` while queued (a caller
+#: that asks for it first takes it off the queue and loads it itself), then a
+#: ``Future`` of the program (``None`` where the file is missing or damaged).
+_AHEAD: dict[str, Future | None] = {}
+
+
+class _Scope:
+    """The programs one :func:`prefetching` scope asks for, in order, and its loader."""
+
+    def __init__(self, label: str, folder: Path):
+        self.label, self.folder = label, folder
+        self.keys: list[str] = []
+        self.seen: set[str] = set()
+        self.known: list[str] = []
+        self.stop = threading.Event()
+        self.thread: threading.Thread | None = None
+
+    def record(self) -> Path:
+        """The file that lists the programs asked for after the first, last time."""
+        text = f"{self.label}\n{self.keys[0]}"
+        return self.folder / f"{hashlib.sha256(text.encode()).hexdigest()[:40]}.keys"
+
+    def asked(self, key: str) -> None:
+        with _LOCK:
+            if key in self.seen:
+                return
+            self.seen.add(key)
+            self.keys.append(key)
+            if len(self.keys) > 1:
+                return
+        try:
+            self.known = self.record().read_text(encoding="ascii").split()
+        except (OSError, ValueError):
+            return  # nothing recorded yet (or unreadable): nothing to load ahead
+        with _LOCK:
+            queue = [k for k in self.known if k != key and k not in _MEMORY]
+            for k in queue:
+                _AHEAD.setdefault(k, None)
+        x64 = bool(jax.config.jax_enable_x64)
+        self.thread = threading.Thread(
+            target=self._load_ahead, args=(queue, x64), name="ewb-ident programs ahead",
+            daemon=True,
+        )  # fmt: skip
+        self.thread.start()
+
+    def _load_ahead(self, queue: list[str], x64: bool) -> None:
+        with jax.enable_x64(x64):
+            for k in queue:
+                with _LOCK:
+                    if self.stop.is_set():
+                        return
+                    if k not in _AHEAD or _AHEAD[k] is not None:
+                        continue  # a caller took it off the queue
+                    _AHEAD[k] = mine = Future()
+                try:
+                    mine.set_result(_read(k))
+                except Exception as err:  # the caller reads it again
+                    _disk_error(f"loading ahead: {err}")
+                    mine.set_result(None)
+
+    def close(self) -> None:
+        """Stop the loader (after the program it is loading, if any), drop what it
+        loaded that nothing asked for, and record this scope's programs."""
+        self.stop.set()
+        if self.thread is not None:
+            self.thread.join()
+        with _LOCK:
+            _AHEAD.clear()
+        if len(self.keys) > 1 and self.keys[1:] != self.known:
+            from ewb_ident.data.outputs import atomic_write
+
+            text = "\n".join(self.keys[1:]) + "\n"
+            try:
+                atomic_write([(self.record(), lambda tmp: tmp.write_text(text, "ascii"))])
+            except OSError as err:
+                _disk_error(f"recording the programs of {self.label}: {err}")
+
+
+@contextlib.contextmanager
+def prefetching(label: str):
+    """Within this context, stored programs are loaded from disk ahead of their first
+    call, in one background thread, while the caller computes.
+
+    Which: those the last run of the same work asked for. The work is known by
+    ``label`` and the first program it asks for, whose key holds the shapes of its
+    arguments (a trace's length, its channels). Once that first program is asked for,
+    the thread loads the ones that run asked for after it, in their order. A program
+    asked for before the thread reaches it is loaded by the caller, as without this;
+    one the thread is loading is waited for. On leaving, the programs asked for are
+    recorded for the next run: a small ``.keys`` file among the stored programs.
+
+    A record is only a hint: a wrong or stale one costs loads nobody uses, never a
+    result (a loaded program is still checked on its first run). Loading a program
+    (jaxlib's ``deserialize_and_load``, some 50-100 ms) releases Python's lock, so
+    the loads overlap the caller's computing on another core. Nothing is done without
+    a cache folder (:func:`set_cache_folder`), with a single thread
+    (:func:`threads`), or inside another such scope (the outer one records).
+    """
+    folder = cache_folder()
+    if folder is None or _SCOPE[0] is not None or threads() < 2:
+        yield
+        return
+    scope = _SCOPE[0] = _Scope(label, folder)
+    try:
+        yield
+    finally:
+        _SCOPE[0] = None
+        scope.close()
 
 
 # ----------------------------------------------------------------------------- threads
