@@ -169,6 +169,19 @@ def test_report_renders_the_posterior_section():
     assert 0.8 < inside < 0.97, inside
 
 
+def one_span_per_run(ax, t, labels) -> None:
+    """The phases' shading as it was drawn before :func:`shade_phases` used collections:
+    one ``axvspan`` per run of a phase (``benchmarks/bench_figures.py`` times both)."""
+    from ewb_ident.reporting.style import PHASE_COLOURS
+
+    start = 0
+    for k in range(1, t.size + 1):
+        if k == t.size or labels[k] != labels[start]:
+            colour = PHASE_COLOURS.get(str(labels[start]), "#ffffff")
+            ax.axvspan(t[start], t[min(k, t.size - 1)], color=colour, lw=0, zorder=0)
+            start = k
+
+
 def test_phase_shading_draws_the_pixels_of_one_axvspan_per_run():
     """``shade_phases`` draws one collection per phase colour; the figure must be the
     one a span per run gives (pixels, and x limits to round-off), on chattering labels whose runs
@@ -192,14 +205,6 @@ def test_phase_shading_draws_the_pixels_of_one_axvspan_per_run():
         canvas = FigureCanvasAgg(fig)
         canvas.draw()
         return bytes(canvas.buffer_rgba()), [ax.get_xlim() for ax in axes]
-
-    def one_span_per_run(ax, t, labels):
-        start = 0
-        for k in range(1, t.size + 1):
-            if k == t.size or labels[k] != labels[start]:
-                colour = PHASE_COLOURS.get(str(labels[start]), "#ffffff")
-                ax.axvspan(t[start], t[min(k, t.size - 1)], color=colour, lw=0, zorder=0)
-                start = k
 
     pixels, limits = draw(shade_phases)
     want_pixels, want_limits = draw(one_span_per_run)
