@@ -25,6 +25,10 @@ recently used files go first). :data:`STATS` counts hits and compilations (shown
 ``ewb-ident --verbose``). A stored program is checked on its first run in a process and
 compiled afresh if it fails. JAX's own on-disk cache must not hold these programs: an
 executable it loaded from there serialises without its compiled kernels.
+
+Loading ahead: within :func:`prefetching` (a diagnosis), the programs the last run of
+the same work used are loaded from disk in a background thread while the work computes;
+each run records its programs in a small ``.keys`` file beside them.
 """
 
 from __future__ import annotations
