@@ -558,6 +558,8 @@ class _Scope:
             queue = [k for k in self.known if k != key and k not in _MEMORY]
             for k in queue:
                 _AHEAD.setdefault(k, None)
+        if not queue:
+            return  # all in memory already: no loader
         x64 = bool(jax.config.jax_enable_x64)
         self.thread = threading.Thread(
             target=self._load_ahead, args=(queue, x64), name="ewb-ident programs ahead",
