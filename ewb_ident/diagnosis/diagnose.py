@@ -144,10 +144,13 @@ def diagnose(
     process that diagnoses many traces of different shapes should call
     ``jax.clear_caches()`` between them (``studies/diagnosis_accuracy.py`` does): the
     compiled code otherwise accumulates until the kernel's limit on memory maps. With
-    the on-disk program cache, the programs the last diagnosis of a trace of this shape
-    used are loaded ahead in the background (:func:`~ewb_ident.model.programs.prefetching`).
+    the on-disk program cache, the programs the last diagnosis of a trace of this length
+    and these channels used are loaded ahead in the background
+    (:func:`~ewb_ident.model.programs.prefetching`).
     """
-    with prefetching(f"diagnose {bic_threshold!r} {max_mechanisms!r} {catalog!r}"):
+    # The channels name the work too: the first program (a fit's) takes them as data.
+    work = f"diagnose {sorted(trace.channels)} {bic_threshold!r} {max_mechanisms!r} {catalog!r}"
+    with prefetching(work):
         return _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress)
 
 

@@ -607,7 +607,9 @@ def prefetching(label: str):
 
     Which: those the last run of the same work asked for. The work is known by
     ``label`` and the first program it asks for, whose key holds the shapes of its
-    arguments (a trace's length, its channels). Once that first program is asked for,
+    arguments (a trace's padded length); ``label`` must name the rest that decides which
+    programs follow (e.g. a trace's channels, which a fit's program takes as data).
+    Once that first program is asked for,
     the thread loads the ones that run asked for after it, in their order. A program
     asked for before the thread reaches it is loaded by the caller, as without this;
     one the thread is loading is waited for. On leaving, the programs asked for are
