@@ -260,7 +260,7 @@ def test_prior_file_overrides_and_bad_priors_say_what_is_wrong(tmp_path):
     ("kwargs", "message"),
     [
         (dict(n_ensembles=1), "independent"),
-        (dict(noise_model="pink"), "noise model must be one of"),
+        (dict(noise_model="pink"), "noise_model must be one of"),
         (dict(stage="brake"), "unknown stage 'brake'"),
         (dict(stage=("chain", "force")), "chain alone"),
         (dict(n_walkers=33), "even"),
@@ -318,7 +318,12 @@ def test_cli_writes_contract_files_and_same_seed_same_summary(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--noise", "pink"], "noise model must be one of"),
+        (["--noise", "pink"], "--noise must be one of"),
+        (["--min-ess", "0"], "--min-ess must be > 0, got 0.0"),
+        (["--steps", "20", "--max-steps", "5"], "--max-steps must be an integer >= --steps (20)"),
+        (["--walkers", "7"], "--walkers must be an even integer >= 4, got 7"),
+        (["--hdi-prob", "1"], "--hdi-prob must lie strictly between 0 and 1"),
+        (["--draws", "1"], "--draws must be an integer >= --ensembles (2), got 1"),
         (["--ensembles", "1"], "independent"),
         (["--stage", "brake"], "unknown stage"),
     ],

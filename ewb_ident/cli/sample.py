@@ -101,7 +101,7 @@ def sample(
         corrected_options(traces, stage, free, per_trace, fix, integrator)
     import time
 
-    from ewb_ident.inference.log_posterior import SampleError
+    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
     from ewb_ident.inference.posterior import sample as run_sample
     from ewb_ident.inference.priors import PriorError
 
@@ -117,6 +117,21 @@ def sample(
 
     if integrator not in ("exponential", "heun"):
         fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    settings = dict(
+        noise_model=noise,
+        n_walkers=walkers,
+        n_steps=steps,
+        max_steps=max_steps,
+        n_ensembles=ensembles,
+        min_ess=min_ess,
+        hdi_prob=hdi_prob,
+        max_draws=draws,
+        seed=seed,
+    )
+    try:  # before the traces are read, in the options' own spelling
+        SamplerSettings(**settings).check(names=_OPTION_NAMES)
+    except SampleError as err:
+        fail(str(err))
     stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
     if isinstance(stages, tuple) and len(stages) == 1:
         stages = stages[0]
@@ -128,19 +143,7 @@ def sample(
         )
         if bar is not None:
             bar.start()
-        common = dict(
-            priors=priors,
-            noise_model=noise,
-            n_walkers=walkers,
-            n_steps=steps,
-            max_steps=max_steps,
-            n_ensembles=ensembles,
-            min_ess=min_ess,
-            hdi_prob=hdi_prob,
-            max_draws=draws,
-            seed=seed,
-            progress=progress,
-        )
+        common = dict(priors=priors, progress=progress, **settings)
         if mechanisms is None:
             result = run_sample(
                 trs,
@@ -166,6 +169,20 @@ def sample(
     )
     if not result.converged:
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+_OPTION_NAMES = {
+    "noise_model": "--noise",
+    "n_walkers": "--walkers",
+    "n_steps": "--steps",
+    "max_steps": "--max-steps",
+    "n_ensembles": "--ensembles",
+    "min_ess": "--min-ess",
+    "hdi_prob": "--hdi-prob",
+    "max_draws": "--draws",
+    "seed": "--seed",
+}
+"""The options of :func:`sample` named by the sampler settings they set."""
 
 
 def _progress_bar(no_progress: bool):

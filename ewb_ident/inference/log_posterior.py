@@ -85,40 +85,59 @@ class SamplerSettings:
         """Most steps per ensemble: ``max_steps``, else ten times ``n_steps``."""
         return self.max_steps or 10 * self.n_steps
 
-    def check(self) -> None:
-        """Raise :class:`SampleError` naming the first setting that cannot be used."""
+    def check(self, names: Mapping[str, str] | None = None) -> None:
+        """Raise :class:`SampleError` naming the first setting that cannot be used.
+
+        Parameters
+        ----------
+        names
+            How the message spells each setting (e.g. ``{"min_ess": "--min-ess"}`` for
+            the command line); by default the keyword argument's name.
+        """
         s = self
+
+        def name(field: str) -> str:
+            return (names or {}).get(field, field)
+
         if s.noise_model not in NOISE_MODELS:
             raise SampleError(
-                f"noise model must be one of {', '.join(NOISE_MODELS)}, got {s.noise_model!r}"
+                f"{name('noise_model')} must be one of {', '.join(NOISE_MODELS)}, "
+                f"got {s.noise_model!r}"
             )
         if not isinstance(s.n_ensembles, int) or s.n_ensembles < 2:
             raise SampleError(
-                f"n_ensembles must be an integer >= 2, got {s.n_ensembles!r}: R-hat needs "
-                "independent ensembles (the walkers of one ensemble are not independent chains)"
+                f"{name('n_ensembles')} must be an integer >= 2, got {s.n_ensembles!r}: R-hat "
+                "needs independent ensembles (the walkers of one ensemble are not independent "
+                "chains)"
             )
         if not isinstance(s.n_steps, int) or s.n_steps < 10:
-            raise SampleError(f"n_steps must be an integer >= 10, got {s.n_steps!r}")
+            raise SampleError(f"{name('n_steps')} must be an integer >= 10, got {s.n_steps!r}")
         if s.max_steps is not None and (
             not isinstance(s.max_steps, int) or s.max_steps < s.n_steps
         ):
             raise SampleError(
-                f"max_steps must be an integer >= n_steps ({s.n_steps}), got {s.max_steps!r}"
+                f"{name('max_steps')} must be an integer >= {name('n_steps')} ({s.n_steps}), "
+                f"got {s.max_steps!r}"
             )
         if s.n_walkers is not None and (
             not isinstance(s.n_walkers, int) or s.n_walkers % 2 or s.n_walkers < 4
         ):
-            raise SampleError(f"n_walkers must be an even integer >= 4, got {s.n_walkers!r}")
+            raise SampleError(
+                f"{name('n_walkers')} must be an even integer >= 4, got {s.n_walkers!r}"
+            )
         if not 0.0 < s.hdi_prob < 1.0:
-            raise SampleError(f"hdi_prob must lie strictly between 0 and 1, got {s.hdi_prob!r}")
+            raise SampleError(
+                f"{name('hdi_prob')} must lie strictly between 0 and 1, got {s.hdi_prob!r}"
+            )
         if not s.min_ess > 0:
-            raise SampleError(f"min_ess must be > 0, got {s.min_ess!r}")
+            raise SampleError(f"{name('min_ess')} must be > 0, got {s.min_ess!r}")
         if not isinstance(s.max_draws, int) or s.max_draws < s.n_ensembles:
             raise SampleError(
-                f"max_draws must be an integer >= n_ensembles, got {s.max_draws!r}"
+                f"{name('max_draws')} must be an integer >= {name('n_ensembles')} "
+                f"({s.n_ensembles}), got {s.max_draws!r}"
             )
         if not isinstance(s.seed, int) or s.seed < 0:
-            raise SampleError(f"seed must be a non-negative integer, got {s.seed!r}")
+            raise SampleError(f"{name('seed')} must be a non-negative integer, got {s.seed!r}")
 
 
 # ----------------------------------------------------------------------------- model
