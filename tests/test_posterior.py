@@ -414,3 +414,22 @@ def test_autocorr_time_is_emcees_integrated_time():
         assert np.array_equal(np.isnan(want), np.isnan(got))
         ok = np.isfinite(want) & (np.abs(want) > 1e-9)
         np.testing.assert_allclose(got[ok], want[ok], rtol=1e-12)
+
+
+def test_convergence_checks_every_chunk_then_every_tenth_of_the_chains():
+    """A short run is checked every CHUNK steps, as before (so its stopping step is the
+    same); a long one every tenth of its length, since a check costs in proportion to the
+    chains (the 1 kHz stiction trace without stiction: 20,000 steps, 190 checks took
+    300 of its 380 s)."""
+    from ewb_ident.inference.chains import next_check
+    from ewb_ident.inference.log_posterior import CHUNK
+
+    schedule = [CHUNK]
+    while schedule[-1] < 20_000:
+        schedule.append(next_check(schedule[-1]))
+    assert schedule[:15] == [CHUNK * k for k in range(1, 16)]  # every chunk to 1,500
+    steps = np.diff(schedule)
+    assert np.all(steps <= np.maximum(CHUNK, 0.15 * np.array(schedule[:-1])))
+    assert np.all(steps >= 0.05 * np.array(schedule[:-1]))
+    assert len(schedule) < 50  # not 200
+    assert all(s % CHUNK == 0 for s in schedule)

@@ -24,6 +24,7 @@ from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.log_posterior import (
     ADAPT_STEPS,
     BURN_TAUS,
+    CHECK_SHARE,
     CHUNK,
     MAX_KEPT,
     POOR_FIT,
@@ -272,8 +273,9 @@ def run_chains(
 ) -> _Run:  # fmt: skip
     """Independent emcee ensembles from the least-squares optimum: an adaptation
     (:func:`_adapt`, discarded), then the kept run, stopped once every convergence
-    criterion holds (checked every :data:`CHUNK` steps) or extended until they do, up
-    to ``max_steps``."""
+    criterion holds (checked every :data:`CHUNK` steps, or every :data:`CHECK_SHARE`
+    of the chains' length once that is more, and wherever the run was planned to end)
+    or extended until they do, up to ``max_steps``."""
     s = settings
     n_walkers, n_steps, max_steps = s.n_walkers, s.n_steps, s.step_limit
     n_ensembles, min_ess, seed = s.n_ensembles, s.min_ess, s.seed
@@ -312,6 +314,7 @@ def run_chains(
     phys = functools.partial(to_physical_columns, names)
     adapt = 2 * ADAPT_STEPS
     done, target, states = 0, n_steps, list(starts)
+    check = CHUNK  # the step of the next convergence check
     adapted = 0
 
     def report(k: int) -> None:
@@ -327,6 +330,9 @@ def run_chains(
             states = list(pool.map(functools.partial(_advance, k), samplers, states))
             done += k
             report(0)
+            if done < min(check, target, max_steps):
+                continue
+            check = next_check(done)
             chains = [s.get_chain() for s in samplers]
             diag = _diagnose(chains, phys, min_ess, final=False)
             if diag["ok"] or done >= max_steps:
@@ -344,6 +350,13 @@ def run_chains(
         else "; ".join(f"ensemble {e}: {k}" for e, k in enumerate(kernels))
     )
     return _Run(samplers, chains, diag, seq, t_compile, time.perf_counter())
+
+
+def next_check(done: int) -> int:
+    """The step of the convergence check after one at step ``done``: :data:`CHUNK` steps
+    later, or :data:`CHECK_SHARE` of ``done`` rounded to whole chunks once that is more
+    (a check's autocorrelation times cost in proportion to the chains' length)."""
+    return done + CHUNK * max(1, round(CHECK_SHARE * done / CHUNK))
 
 
 def poor(f: FitResult) -> bool:

@@ -27,7 +27,11 @@ BURN_TAUS = 3.0  #: burn-in, in autocorrelation times
 TAU_RELIABLE = 50.0  #: steps after burn-in (in tau) for emcee's tau estimate to be trusted
 RHAT_MAX = 1.01  #: between-ensemble R-hat above which the ensembles disagree
 STUCK = 0.2  #: a walker accepting less than this fraction of its ensemble's median is stuck
-CHUNK = 100  #: steps between progress reports and convergence checks
+CHUNK = 100  #: steps between progress reports (and the least between convergence checks)
+#: Steps between convergence checks, as a share of the chains' length (rounded to a whole
+#: number of :data:`CHUNK`): a check's cost grows with the chains, so a long run checks
+#: every 10 % of its length rather than every :data:`CHUNK` steps (19,000 steps: 1,900).
+CHECK_SHARE = 0.1
 MAX_KEPT = 10_000  #: most draws kept for the summary, over all ensembles (thinned)
 ADAPT_STEPS = 100  #: steps of each of the two adaptation rounds (discarded)
 PROPOSAL_SHARE = 0.8  #: share of steps proposed from the fitted Student-t (else DEMove)
