@@ -6,6 +6,7 @@ trace. ``studies/calibration.py`` measures coverage over many traces; here one c
 behaviour, with fixed seeds.
 """
 
+import dataclasses
 import json
 import math
 import os
@@ -433,3 +434,22 @@ def test_convergence_checks_every_chunk_then_every_tenth_of_the_chains():
     assert np.all(steps >= 0.05 * np.array(schedule[:-1]))
     assert len(schedule) < 50  # not 200
     assert all(s % CHUNK == 0 for s in schedule)
+
+
+def test_a_start_that_misses_the_noise_floor_says_so_in_the_posterior(force_torque):
+    """A converged least-squares start that leaves the force far above its noise (here a
+    200 N offset over the trace's second half, which the bell cannot follow) is repeated
+    among the posterior's warnings: its intervals are a model's that does not reproduce
+    the trace. A clean trace's posterior has no such warning (``short_chain``)."""
+    trace, _ = force_torque
+    force = np.asarray(trace["force_N"]).copy()
+    force[trace.n // 2 :] += 200.0
+    bumped = dataclasses.replace(trace, channels={**trace.channels, "force_N": force})
+    res = sample(bumped, stage=("force", "torque"), n_steps=20, max_steps=20, seed=1)
+    start = [w for w in res.warnings if w.startswith("least-squares start (force): ")]
+    assert any("force_N misses its noise floor" in w for w in start), res.warnings
+
+
+def test_a_clean_start_adds_no_misfit_warning(short_chain):
+    _, _, res = short_chain
+    assert not any("noise floor" in w for w in res.warnings), res.warnings

@@ -77,6 +77,11 @@ class FitResult:
     stderr_white
         The standard errors if the residuals were white (``s^2 (J^T J)^-1``), keyed as
         ``stderr``: never larger than ``stderr``.
+    misfits
+        Those of ``warnings`` that name a channel missing its noise floor by more than
+        :data:`MISFIT_RATIO` (physics the model leaves out, or a logger's noise): a
+        posterior from this fit repeats them, as its intervals are then those of a model
+        that does not reproduce the trace.
     """
 
     stage: str
@@ -105,6 +110,7 @@ class FitResult:
     problem: StageProblem = field(repr=False)
     data: dict = field(repr=False)
     stderr_white: dict[str, float | None] = field(default_factory=dict, repr=False)
+    misfits: tuple[str, ...] = field(default=(), repr=False)
 
     @property
     def status(self) -> str:

@@ -372,7 +372,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         sim = np.concatenate([p[ch] for p in preds if ch in p])
         meas = np.concatenate([t[ch] for t, chs in zip(traces, channels, strict=True) if ch in chs])
         pooled[ch] = channel_metrics(sim, meas)
-    acceptable, judged = _judge(setup, params, trace_metrics, pooled)
+    acceptable, judged, misfits = _judge(setup, params, trace_metrics, pooled)
     notes += judged
     return FitResult(
         stage=setup.stage,
@@ -396,6 +396,7 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         n_steps=steps,
         cost=float(0.5 * np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),
         warnings=tuple(notes),
+        misfits=tuple(misfits),
         predictions=tuple(preds),
         u=u,
         problem=problem,
@@ -424,9 +425,14 @@ FLAT_BELL_B = 0.5
 MISFIT_RATIO = 3.0
 
 
-def _judge(setup: Setup, params, trace_metrics, pooled) -> tuple[bool, list[str]]:
-    """Judge the fit against what this tool states as acceptable (see ``FitResult``)."""
+def _judge(
+    setup: Setup, params, trace_metrics, pooled
+) -> tuple[bool, list[str], list[str]]:
+    """Judge the fit against what this tool states as acceptable (see ``FitResult``):
+    whether it is, the notes on it, and those of the notes that name a channel missing
+    its noise floor (a warning, not a rejection)."""
     notes: list[str] = []
+    misfits: list[str] = []
     acceptable = True
     if setup.stage in ("force", "chain") and "b" in setup.free:
         b = float(params[0].b)
@@ -456,12 +462,13 @@ def _judge(setup: Setup, params, trace_metrics, pooled) -> tuple[bool, list[str]
             floor = max(nz.get(ch, 0.0), noise_floor(t[ch]))
             ratio = m["rmse"] / floor
             if ratio > MISFIT_RATIO:
-                notes.append(
+                misfits.append(
                     f"{t.name}: {ch} misses its noise floor: residual RMS {m['rmse']:.3g} is "
                     f"{ratio:.1f}x the sensor noise ({floor:.3g}); the model leaves "
                     "something out here (ewb-ident diagnose locates it)"
                 )
-    return acceptable, notes
+                notes.append(misfits[-1])
+    return acceptable, notes, misfits
 
 
 #: A drift from the logged voltage's noise this large against the angle's excess misfit

@@ -225,8 +225,12 @@ def _sample(
         fits.append(f)
     if not fits or not any(f.corr_names for f in fits):
         raise SampleError("nothing to sample: no free parameter in the given stages")
+    # A fit that did not converge says everything; one that did, where it misses the
+    # noise (the intervals are then a model's that does not reproduce the trace).
     notes += [
-        f"least-squares start ({f.stage}): {w}" for f in fits if not f.converged for w in f.warnings
+        f"least-squares start ({f.stage}): {w}"
+        for f in fits
+        for w in (f.misfits if f.converged else f.warnings)
     ]
     for s in ("gap", "force"):
         if s in stages:
