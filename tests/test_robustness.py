@@ -367,5 +367,5 @@ def test_zero_walkers_is_refused_not_replaced(tmp_path):
         app,
         ["sample", str(DATA / "steps_200hz.csv"), "--walkers", "0", "--out", str(tmp_path / "o")],
     )
-    assert out.exit_code == 2 and "n_walkers must be an even integer >= 4" in out.output
+    assert out.exit_code == 2 and "--walkers must be an even integer >= 4, got 0" in out.output
     assert not (tmp_path / "o").exists()
