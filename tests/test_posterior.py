@@ -420,8 +420,8 @@ def test_autocorr_time_is_emcees_integrated_time():
 def test_convergence_checks_every_chunk_then_every_tenth_of_the_chains():
     """A short run is checked every CHUNK steps, as before (so its stopping step is the
     same); a long one every tenth of its length, since a check costs in proportion to the
-    chains (the 1 kHz stiction trace without stiction: 20,000 steps, 190 checks took
-    300 of its 380 s)."""
+    chains (the 1 kHz stiction trace without stiction: 20,000 steps in 380 s checked
+    every 100 steps, 160 s checked this way)."""
     from ewb_ident.inference.chains import next_check
     from ewb_ident.inference.log_posterior import CHUNK
 
@@ -453,3 +453,14 @@ def test_a_start_that_misses_the_noise_floor_says_so_in_the_posterior(force_torq
 def test_a_clean_start_adds_no_misfit_warning(short_chain):
     _, _, res = short_chain
     assert not any("noise floor" in w for w in res.warnings), res.warnings
+
+
+def test_summary_of_chains_too_short_for_tau_prints_not_a_traceback(short_chain):
+    """Was: a TypeError when no finite tau could be estimated (e.g. ``--steps 20`` on a
+    1 kHz closed-loop trace without current_A, torque_Nm and disc_speed_rad_s)."""
+    from ewb_ident.reporting.summaries import posterior_summary
+
+    _, _, res = short_chain
+    short = dataclasses.replace(res, diagnostics={**res.diagnostics, "tau_max": None})
+    assert "tau not estimable" in posterior_summary(short)
+    assert f"tau up to {res.diagnostics['tau_max']:.0f} steps" in posterior_summary(res)

@@ -330,7 +330,7 @@ def run_chains(
             states = list(pool.map(functools.partial(_advance, k), samplers, states))
             done += k
             report(0)
-            if done < min(check, target, max_steps):
+            if done < min(check, target):  # target <= max_steps
                 continue
             check = next_check(done)
             chains = [s.get_chain() for s in samplers]

@@ -64,13 +64,15 @@ def posterior_summary(result) -> str:
     intervals, diagnostics, the a-b-c-mu correlations, identifiability and warnings."""
     d = result.diagnostics
     pct = f"{100 * result.hdi_prob:g} %"
+    # No finite tau when the chains are too short to estimate it (the warnings say so).
+    tau = "not estimable" if d["tau_max"] is None else f"up to {d['tau_max']:.0f} steps"
     lines = [
         f"posterior of {', '.join(result.trace_names)} (stage: {'+'.join(result.stages)}"
         + (f", corrected by {', '.join(result.mechanisms)}" if result.mechanisms else "")
         + ") - "
         + ("converged" if result.converged else "NOT CONVERGED (see the warnings)"),
         f"  {d['n_ensembles']} ensembles x {d['n_walkers']} walkers x {d['n_steps']} steps; "
-        f"burn-in {d['burn']}, thin {d['thin']}, tau up to {d['tau_max']:.0f} steps, "
+        f"burn-in {d['burn']}, thin {d['thin']}, tau {tau}, "
         f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance'])}",
         "",
         f"  {'param':<19}{'mean':>11}{'sd':>10}{pct + ' HDI':>27}{'ESS':>8}{'R-hat':>7}  unit",
