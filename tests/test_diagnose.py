@@ -256,10 +256,13 @@ def test_unknown_physics_is_not_forced_into_a_catalog_name():
     assert res.verdict == "unexplained"
     assert all(not f.catalog for f in res.findings)
     top = res.findings[0]
-    assert top.effect == "unexplained_torque" and top.stage == "torque"
-    assert {"disc_sin", "disc_cos"} & set(top.depends_on)
-    assert "once per revolution" in top.explanation
+    assert top.effect.startswith("learned_") and top.stage == "torque"
+    assert top.place in ("friction", "torque.output", "sensor.torque_Nm")
+    assert top.depends_on == ("disc_angle",)
+    assert "sin(φ_d" in top.equation  # once per revolution
+    assert "disc revolution" in top.explanation
     assert top.evidence["delta_bic"] <= -10.0
+    assert top.heldout["excess_share"] >= 0.5
 
 
 def test_a_trace_without_any_stage_is_refused():

@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from ewb_ident import rig
-from ewb_ident.diagnosis.correction import GenericCorrection, forward_select
 from ewb_ident.inference.augmented import fit_mechanisms, make_data
 from ewb_ident.mechanisms import (
     CATALOG,
@@ -339,22 +338,36 @@ def test_motor_mechanisms_reproduce_the_rig_motor(rig_effect, mechanism, tol_deg
     assert err < tol_deg  # ... and the mechanism reproduces it
 
 
-def test_a_motor_load_torque_enters_the_integration_exactly():
-    """The generic motor correction acts through the load-torque hook: a viscous term
-    c * omega / 30 rad/s is extra damping, so the motor must match the plain motor with
-    v + c / 30 (the load is an input held over each sub-step, trapezoidal in its value)."""
-    extra = 1e-3  # N m s/rad
-    corr = GenericCorrection(stage_name="motor", features=("viscous",), coef=(extra * 30.0,))
-    assert corr.uses("load_torque") and not corr.uses("output")
-    volts = jnp.asarray(np.where(np.arange(400) < 100, 4.0, 0.0))
-    with_load = motor_states(BASE, volts, 0.005, 0.0, (corr,), 10)
-    damped = BASE.replace(v=BASE.v + extra)
-    exact = motor_states(damped, volts, 0.005, 0.0, (), 1)
-    plain = motor_states(BASE, volts, 0.005, 0.0, (), 1)
-    theta = (np.asarray(x[:, 2]) * 180 / math.pi for x in (with_load, exact, plain))
-    th_load, th_exact, th_plain = theta
-    assert np.max(np.abs(th_exact - th_plain)) > 20.0  # the damping matters ...
-    assert np.max(np.abs(th_load - th_exact)) < 0.05  # ... and the load path reproduces it
+def test_a_learned_motor_term_enters_the_integration_exactly():
+    """A learned voltage or load torque per sample (zero-order hold) enters the motor's
+    linear flow exactly: the change it makes is the discovery's linear response (the
+    motor's impulse response convolved with the series), to round-off."""
+    from ewb_ident.diagnosis.discovery import motor_response
+    from ewb_ident.mechanisms.learned import LearnedTerm
+
+    n, dt = 400, 0.005
+    volts = jnp.asarray(np.where(np.arange(n) < 100, 4.0, 0.0))
+    rng = np.random.default_rng(3)
+    basis = np.stack([np.ones(n), np.sin(np.arange(n) / 17.0), rng.standard_normal(n)], 1)
+    plain = np.asarray(motor_states(BASE, volts, dt, 0.0, (), 1))
+    h = motor_response(BASE.as_dict(), dt, n)
+    for j, (place, coef) in enumerate(
+        (("motor.electrical", (0.3, -0.2, 0.05)), ("motor.mechanical", (2e-3, 1e-3, 5e-4)))
+    ):
+        term = LearnedTerm(place=place, names=("1", "s", "r"), scales=(1.0,) * 3, coef=coef)
+        ctx = {"learned": {place: jnp.asarray(basis)}}
+        series = basis @ np.asarray(coef)
+        from ewb_ident.model.predict import _motor_series
+
+        got = np.asarray(motor_states(BASE, volts, dt, 0.0, (term,), 1, series=_motor_series(
+            (term,), ctx)))  # fmt: skip
+        change = got - plain
+        expect_theta = np.convolve(h[:, 1, j], series)[:n]
+        expect_i = np.convolve(h[:, 0, j], series)[:n]
+        scale = np.max(np.abs(expect_theta))
+        assert scale > 1.0  # the term matters (degrees) ...
+        assert np.max(np.abs(change[:, 2] * 180 / math.pi - expect_theta)) < 1e-8 * scale
+        assert np.max(np.abs(change[:, 0] - expect_i)) < 1e-8 * max(np.max(np.abs(expect_i)), 1)
 
 
 def test_wedge_load_torque_of_one_form_leaves_the_other_absent_not_implausible():
@@ -436,18 +449,6 @@ def test_levenberg_marquardt_solves_a_linear_problem_in_one_step():
     d = data_for(run.trace)
     f0 = fit_mechanisms(d, ("gap",), ("p2", "p1", "p0"), (), ("x_m",))
     assert f0.converged and f0.rss < 1e-12
-
-
-def test_forward_selection_picks_the_terms_in_the_data():
-    rng = np.random.default_rng(0)
-    n = 400
-    base = rng.standard_normal((n, 2))
-    terms = rng.standard_normal((n, 5))
-    r = base @ [1.0, -2.0] + 3.0 * terms[:, 3] + rng.standard_normal(n)
-    sel = forward_select(r, base, terms, list("abcde"), threshold=10.0)
-    assert sel.features == ("d",)
-    none = forward_select(rng.standard_normal(n), base, terms, list("abcde"), threshold=10.0)
-    assert none.features == ()
 
 
 def test_a_dead_band_within_the_logged_voltages_noise_is_named_as_possibly_that_noise():

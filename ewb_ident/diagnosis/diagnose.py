@@ -48,6 +48,7 @@ and were set on rig settings other than those the accuracy study measures on.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import threading
 import time
@@ -58,14 +59,15 @@ from typing import Any
 from ewb_ident.data.metrics import channel_metrics
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
+from ewb_ident.diagnosis.artefacts import find_artefacts
 from ewb_ident.diagnosis.corrected import corrected_of, model_tables
-from ewb_ident.diagnosis.correction import (
-    GenericCorrection,
-)
+from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, Discovery, discover
 from ewb_ident.diagnosis.findings import (
     closure,
-    fit_generic,
-    generic_finding,
+    fit_learned,
+    fitted_term,
+    learned_data,
+    learned_finding,
     located_stages,
     make_finding,
     mechanism_start,
@@ -169,10 +171,23 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
     lap("baseline_stages")
     checks_before, cells, flagged = _locate(ses, trace)
     lap("locate")
+    # Structured sensor noise (a mains hum) is named and removed, then the trace is
+    # diagnosed without it: it is not brake physics.
+    artefacts, cleaned = find_artefacts(checks_before, trace, ses.labels)
+    if cleaned:
+        say("removing periodic interference: " + ", ".join(sorted(cleaned)))
+        trace = dataclasses.replace(trace, channels={**trace.channels, **cleaned})
+        ses = Session(trace)
+        ses.baseline()
+        checks_before, cells, flagged = _locate(ses, trace)
+        lap("artefacts")
     chain = _Chain.baseline(ses, trace)
     lap("baseline_chain")
     work = _explain(ses, pool, {m.stage for m in flagged}, bic_threshold, max_mechanisms, say)
     lap("explain")
+    say("checking each catalog name against a learned term at its stage")
+    _second_opinion(ses, work)
+    lap("second_opinion")
     say("looking for physics outside the catalog")
     _unknown(ses, work, bool(flagged), bic_threshold)
     lap("unknown")
@@ -210,6 +225,7 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         trace=trace,
         timings=timings,
         notes=tuple(notes),
+        artefacts=tuple(artefacts),
         corrected=corrected_of(trace, chain.fits, chain.data, chain.sigma)
         if chain.ok and len(chain.fits) > 1
         else None,
@@ -275,7 +291,12 @@ class _Work:
     current: dict[str, AugFit] = field(default_factory=dict)  # stage -> latest fit of it
     last_round: list[_Tried] = field(default_factory=list)
     alternatives: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
-    corrections: list[tuple[str, AugFit, dict[str, float], Any]] = field(default_factory=list)
+    #: Discovered terms: (discovery, its fit, evidence, the fitted term).
+    discoveries: list[tuple[Discovery, AugFit, dict[str, float], Any]] = field(
+        default_factory=list
+    )
+    #: Catalog names a discovered term at their stage outdid on held-out data.
+    rivals: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
 
@@ -486,9 +507,48 @@ def _refined_note(plain: _Tried, wider: _Tried) -> str:
     )
 
 
+def _fits_of(ses: Session, selected):
+    """The current fit of a set of stages, with the selected mechanisms acting there."""
+
+    def fits_of(stages):
+        T = closure(stages, selected, ses)
+        ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
+        return ses.fit(T, ms, explore=[False] * len(ms))
+
+    return fits_of
+
+
+def _second_opinion(ses: Session, work: _Work) -> None:
+    """Never a confident wrong name: a selected catalog mechanism stays only if it
+    removes at least as much of the excess at its stage as the best learned term there
+    does on held-out data (less :data:`CATALOG_MARGIN`). Otherwise it is dropped, its
+    stage goes to discovery, and the catalog name becomes the learned term's rival."""
+    for mech in list(work.selected):
+        others = [m for m in work.selected if m is not mech]
+        disc = discover(ses, mech.stage, _fits_of(ses, others))
+        if disc is None or not disc.learned.generalises:
+            continue
+        cand = next(c for c in work.candidates if c.selected and c.variant == mech.variant)
+        if min(disc.learned.share, 1.0) <= cand.explained + CATALOG_MARGIN:
+            continue
+        work.selected.remove(mech)
+        ev = work.evidence.pop(mech.variant)
+        k = next(i for i, c in enumerate(work.candidates) if c is cand)
+        why = (
+            f"a learned term at {disc.place} removes {100 * min(disc.learned.share, 1):.0f} % "
+            f"of the excess on held-out data against its {100 * cand.explained:.0f} %"
+        )
+        work.candidates[k] = Candidate(**{**cand.__dict__, "selected": False, "rejected": why})
+        work.rivals.setdefault(mech.stage, []).append((mech.id, float(ev["delta_bic"])))
+        work.notes.append(f"{mech.variant}: not reported: {why}")
+        for st in ses.mechanism_stages(mech):
+            work.current[st] = _fits_of(ses, work.selected)((st,))
+
+
 def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float) -> None:
-    """Step 4: a sparse generic correction at each stage still located, unless a held
-    back catalog rival removes as much as it does (then the rival is promoted)."""
+    """Step 4: discovery (:mod:`ewb_ident.diagnosis.discovery`) at each stage still
+    located, unless a held back catalog rival removes as much as the discovered term
+    does (then the rival is promoted)."""
     # Only a residual clearly above the noise (not merely serially correlated) calls for
     # physics beyond the catalog once a mechanism has been added: what remains at the
     # noise level then is the approximation of the added physics.
@@ -496,43 +556,71 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
         located_stages(ses, work.current, structured=not work.selected) if any_flagged else set()
     )
     remaining = ranked_stages(ses, work.current, still)
+    done: set[str] = set()
     for s in remaining[:MAX_CORRECTIONS]:
-        res = fit_generic(ses, s, work.selected, work.current, bic_threshold)
-        if res is None:
+        if s in done:
             continue
-        f_gen, ev, sel = res
-        # A catalog mechanism that was held back only because it left part of the excess
-        # unexplained, but removes as much as the flexible correction does, is the better
-        # explanation: the rest is beyond any smooth term (e.g. noise on a measured input
-        # bent by a nonlinear stage).
+        disc = discover(ses, s, _fits_of(ses, work.selected))
+        if disc is None:
+            continue
+        if not disc.learned.groups or not disc.distilled.generalises:
+            work.notes.append(_not_generalised(disc))
+            continue
+        res = fit_learned(ses, disc, work.selected, bic_threshold)
+        if res is None:
+            work.notes.append(
+                f"{s} stage: the term learned at {disc.place} generalises on held-out data "
+                "but its distilled equation does not improve the fit of the whole stage "
+                "(dBIC above the threshold): not reported"
+            )
+            continue
+        f_new, ev, term = res
         rivals = [
             r
             for r in work.last_round
             if r[0].rejected.startswith("explains only")
-            and r[1].stages == f_gen.stages
+            and r[1].stages == f_new.stages
             and r[2]["delta_chi2"] >= CATALOG_SHARE * ev["delta_chi2"]
         ]
-        if rivals:
+        if rivals and s not in work.rivals:
             _promote(work, min(rivals, key=lambda r: r[0].delta_bic), ev)
             continue
-        work.corrections.append((s, f_gen, ev, sel))
-        for st in f_gen.stages:
-            work.current[st] = f_gen
+        work.discoveries.append((disc, f_new, ev, term))
+        for st in f_new.stages:
+            work.current[st] = f_new
+            done.add(st)
+
+
+def _not_generalised(disc: Discovery) -> str:
+    """Words for a stage whose learned term does not generalise."""
+    pf = disc.learned
+    if not pf.groups:
+        return (
+            f"{disc.stage} stage: no learned term at any of its places "
+            f"({', '.join(p.place for p in disc.places)}) improves held-out data "
+            f"({disc.method}): unexplained"
+        )
+    ins = 100.0 * (pf.insample_before - pf.insample_after) / max(pf.insample_before, 1e-300)
+    return (
+        f"{disc.stage} stage: a term learned at {disc.place} depending on "
+        f"{', '.join(disc.depends_on) or ', '.join(pf.groups)} lowers the residual it was "
+        f"fitted to by {ins:.0f} % but held-out data ({disc.method}) by only "
+        f"{disc.distilled.improvement_pct:.0f} %: it does not generalise and is not a finding"
+    )
 
 
 def _promote(work: _Work, rival: _Tried, generic_ev: dict[str, float]) -> None:
-    """Select a held-back catalog rival in place of a generic correction."""
+    """Select a held-back catalog rival in place of a discovered term."""
     cand, f1, ev1, mech = rival
     note = (
         f"explains {100 * cand.explained:.0f} % of the excess residual, "
-        f"{100 * cand.delta_chi2 / generic_ev['delta_chi2']:.0f} % of what a generic "
-        "correction at its stage removes"
+        f"{100 * cand.delta_chi2 / generic_ev['delta_chi2']:.0f} % of what a learned term "
+        "at its stage removes"
     )
     k = next(i for i, c in enumerate(work.candidates) if c is cand)
     work.candidates[k] = Candidate(**{**cand.__dict__, "selected": True, "rejected": ""})
     # One rival per stage set: a second located stage with the same stages must not
-    # promote it again (it once did, and the candidate was no longer in the list by
-    # identity) nor add another rival for the mismatch it explains.
+    # promote it again nor add another rival for the mismatch it explains.
     work.last_round = [r for r in work.last_round if r[1].stages != f1.stages]
     work.selected.append(mech)
     work.evidence[mech.variant] = ev1 | {"generic_delta_chi2": generic_ev["delta_chi2"]}
@@ -554,7 +642,7 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     findings kept, the chain evidence of each, and those the chain did not confirm.
     """
     catalog = list(work.selected)
-    generic = [fitted_mechanism(f, f"unexplained_{s}") for s, f, _, _ in work.corrections]
+    generic = [term for _, _, _, term in work.discoveries]
     chain_ev: dict[str, dict[str, float]] = {}
     if not chain.ok:
         return catalog + generic, chain_ev, []
@@ -591,6 +679,9 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
         if len(failed) == len(pending):
             break
         pending = failed
+    if generic:
+        # The learned terms' basis series, for the chain's model.
+        chain.data = learned_data(chain.data, [d for d, _, _, _ in work.discoveries])
     for m in generic:
         confirmed(m)
     return kept, chain_ev, list(last.values())
@@ -637,7 +728,7 @@ def _findings(
 ) -> list[Finding]:
     """A finding, with its words and its metrics before and after, per mechanism kept."""
     findings: list[Finding] = []
-    by_variant = {f"unexplained_{s}": (s, f, ev, sel) for s, f, ev, sel in work.corrections}
+    by_variant = {term.variant: (d, f, ev, term) for d, f, ev, term in work.discoveries}
     for k, mech in enumerate(added):
         if chain.ok:
             before = chain_metrics(trace, chain.fits[k])
@@ -645,10 +736,14 @@ def _findings(
         else:
             before = stage_before.get(mech.stage, {})
             after = stage_after.get(mech.stage, {})
-        if isinstance(mech, GenericCorrection):
-            s, f_gen, ev, sel = by_variant[mech.variant]
+        if mech.variant in by_variant:
+            disc, f_new, ev, _ = by_variant[mech.variant]
+            term = fitted_term(f_new, disc.place)
             ev = ev | chain_prefixed(chain_ev.get(mech.variant))
-            findings.append(generic_finding(ses, mech, f_gen, ev, sel, flagged, before, after))
+            rivals = tuple(work.rivals.get(disc.stage, ()))
+            findings.append(
+                learned_finding(ses, disc, term, f_new, ev, flagged, before, after, rivals)
+            )
         else:
             fit_m = work.current[mech.stage] if mech.stage in work.current else None
             se = stderr_of(mech, fit_m, ses)
@@ -679,7 +774,8 @@ def _verdict(ses, work, findings, flagged, unconfirmed, bic_threshold) -> tuple[
         notes.append(
             "a mismatch is located ("
             + ", ".join(f"{m.stage} stage, {m.phase}: {m.score:.1f}x" for m in flagged[:3])
-            + " the noise), but neither a catalog mechanism nor a generic correction "
-            "explains it beyond the noise in the whole chain: unexplained"
+            + " the noise), but neither a catalog mechanism nor a learned term that "
+            "generalises to held-out data explains it beyond the noise in the whole chain: "
+            "unexplained"
         )
     return verdict, notes

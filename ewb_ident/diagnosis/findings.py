@@ -1,5 +1,5 @@
-"""Findings in words: what a supported mechanism or a generic correction means, where
-it acts, and its metrics before and after."""
+"""Findings in words: what a supported mechanism or a discovered term means, where it
+acts, and its metrics before and after."""
 
 from __future__ import annotations
 
@@ -10,13 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
-from ewb_ident.diagnosis.correction import (
-    FEATURES,
-    GenericCorrection,
-    available_features,
-    forward_select,
-    signals,
-)
+from ewb_ident.diagnosis.discovery import Discovery, basis_matrix, physical, reading
 from ewb_ident.diagnosis.locate import (
     PHASES,
     Mismatch,
@@ -28,17 +22,10 @@ from ewb_ident.diagnosis.locate import (
 )
 from ewb_ident.diagnosis.result import Finding
 from ewb_ident.diagnosis.session import SEPARATE, Session, bic_evidence, stage_order, stall_torque
-from ewb_ident.inference.augmented import (
-    AugFit,
-    AugProblem,
-    clipped_to_u,
-    jacobian,
-    residuals,
-)
+from ewb_ident.inference.augmented import AugFit, fit_mechanisms
 from ewb_ident.mechanisms import AbstractMechanism
-from ewb_ident.mechanisms.base import fmt_pm
-from ewb_ident.model.params import PARAMS
-from ewb_ident.model.predict import n_substeps
+from ewb_ident.mechanisms.base import RESOLVED_Z, fmt_pm
+from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -169,81 +156,132 @@ def make_finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx
     )
 
 
-def fit_generic(ses: Session, stage: str, selected, current, threshold):
-    """Fit the sparse generic correction at ``stage``; ``None`` when no term helps."""
-    sig = signals(ses.trace)
-    feats = available_features(stage, sig)
-    if not feats:
-        return None
-    T = closure((stage,), selected, ses)
+def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
+    """Fit the distilled term of ``disc`` through the model (nonlinear least squares, the
+    stages' own parameters and any selected mechanism there refitted alongside).
+
+    Returns ``(fit, evidence, term)``, or ``None`` when the term does not lower the BIC
+    of its stages by ``threshold`` (the in-sample guard beside the held-out one)."""
+    T = closure(disc.stages, selected, ses)
     ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
     f_cur = ses.fit(T, ms, explore=[False] * len(ms))
-    full = GenericCorrection(stage_name=stage, features=feats)
-    mechs = [*f_cur.mechanisms, full]
-    problem = AugProblem(
-        stages=T,
-        free=ses.free_of(T),
-        specs=tuple((type(m), m.static_config()) for m in mechs),
-        channels=ses.channels_of(T),
-        n_sub=n_substeps(float(ses.data["dt"]), mechs),
+    data = learned_data(ses.data, [disc])
+    scales = tuple(float(max(abs(c), 1e-12)) for c in disc.coef)
+    term = LearnedTerm(
+        place=disc.place, names=tuple(c.label for c in disc.columns), scales=scales,
+        coef=np.asarray(disc.coef, float),
+    )  # fmt: skip
+    f_new = fit_mechanisms(
+        data,
+        T,
+        ses.free_of(T),
+        (*f_cur.mechanisms, term),
+        ses.channels_of(T),
+        start={n: f_cur.values[n] for n in ses.free_of(T)},
+        explore=[False] * (len(ms) + 1),
     )
-    u = [float(PARAMS[n].to_unconstrained(f_cur.values[n])) for n in problem.free]
-    for m in mechs:
-        vals = m.values()
-        u += [clipped_to_u(i, vals[i.name]) for i in m.param_info()]
-    u = jnp.asarray(np.asarray(u))
-    r = np.asarray(residuals(problem, u, ses.data))
-    J = np.asarray(jacobian(problem, u, ses.data))
-    m_terms = len(feats)
-    sel = forward_select(r, J[:, :-m_terms], J[:, -m_terms:], feats, threshold=threshold)
-    if not sel.features:
-        return None
-    gc = GenericCorrection(stage_name=stage, features=sel.features)
-    f_gen = ses.fit(T, [*f_cur.mechanisms, gc], explore=[False] * (len(ms) + 1))
-    ev = bic_evidence(f_gen, f_cur, ses.sigma_tf)
+    ev = bic_evidence(f_new, f_cur, ses.sigma_tf)
     if ev["delta_bic"] > -threshold:
         return None
-    return f_gen, ev, sel
+    return f_new, ev, fitted_term(f_new, disc.place)
 
 
-def generic_finding(ses, mech, f_gen, ev, sel, flagged, before, after) -> Finding:
-    stage = mech.stage
-    se = f_gen.mechanism_stderr(mech)
-    vals = mech.values()
-    words = FEATURES[stage]
-    deps = []
-    for f in mech.features:
-        w = words[f]
-        if w not in deps:
-            deps.append(w)
-    phases = _phases_of(stage, flagged, (stage,))
+def learned_data(data: dict[str, Any], discoveries) -> dict[str, Any]:
+    """``data`` with the basis series of the discovered terms (by place)."""
+    n_pad = int(np.asarray(data["t"]).shape[0])
+    learned = dict(data.get("learned", {}))
+    for d in discoveries:
+        learned[d.place] = jnp.asarray(basis_matrix(d, n_pad))
+    return dict(data) | {"learned": learned}
+
+
+def fitted_term(f: AugFit, place: str) -> LearnedTerm:
+    return next(m for m in f.mechanisms if isinstance(m, LearnedTerm) and m.place == place)
+
+
+def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, after,
+                    rivals=()) -> Finding:  # fmt: skip
+    """A finding for a discovered term: where it acts, its equation with intervals, what
+    it depends on, its held-out improvement and a physical reading (a hypothesis)."""
+    stage = disc.stage
+    se = f_new.mechanism_stderr(term)
+    vals = term.values()
+    coef = [vals[f"c{j}"] for j in range(len(vals))]
+    equation = disc.equation(coef)
+    info = PLACES[disc.place]
+    phases = _phases_of(stage, flagged, disc.stages)
     where = f"{stage} stage" + (f", {_and(phases)}" if phases else "")
+    deps = [disc.signals[d].words if d in disc.signals else d for d in disc.depends_on]
     ch = MAIN_CHANNEL[stage]
     mw = _metric_words(ch, before, after)
-    terms = ", ".join(
-        f"{f} {fmt_pm(vals[f'c_{f}'], se.get(f'c_{f}'))} {i.unit}"
-        for f, i in zip(mech.features, mech.param_info(), strict=True)
+    ho = disc.distilled
+    hyp = reading(disc.place, disc.depends_on)
+    terms = []
+    for j, c in enumerate(disc.columns):
+        expr, factor, unit = physical(c, disc.signals)
+        s_ = se.get(f"c{j}")
+        terms.append(
+            {
+                "expression": expr,
+                "coef": float(coef[j]) * factor,
+                "stderr": None if s_ is None else abs(s_ * factor),
+                "unit": info.unit + (f"/({unit})" if unit else ""),
+            }
+        )
+    for t in terms:
+        s_ = t["stderr"]
+        t["low_90"] = None if s_ is None else t["coef"] - RESOLVED_Z * s_
+        t["high_90"] = None if s_ is None else t["coef"] + RESOLVED_Z * s_
+    coefs = "; ".join(
+        f"{t['expression']}: {fmt_pm(t['coef'], t['stderr'])} {t['unit']}" for t in terms
     )
-    kind = "load torque" if stage == "motor" else f"correction of {ch}"
     text = (
-        f"the {STAGE_WORDS[stage]} misses something no catalog mechanism explains ({where}); "
-        f"a generic {kind} depending on {'; '.join(deps)} improves the fit ({terms})"
+        f"the {STAGE_WORDS[stage]} misses something no catalog mechanism explains ({where}). "
+        f"A term learned at {disc.place} ({info.words}) depending on {_and(deps)} "
+        f"generalises: on held-out data ({disc.method}) it lowers the residual by "
+        f"{ho.improvement_pct:.0f} % ({100 * min(ho.share, 1.0):.0f} % of the excess over "
+        f"the noise). Distilled: {equation} (coefficients: {coefs})"
         + (f"; {mw}" if mw else "")
-        + f", ΔBIC {ev['delta_bic']:.0f}. Physics not in the catalog: inspect before "
-        "modelling it."
+        + f", ΔBIC {ev['delta_bic']:.0f}."
+        + (f" A reading to inspect: {hyp}." if hyp else " No known signature matches it.")
     )
+    if rivals:
+        text += " The nearest catalog name, " + _and(
+            [f"{e} (ΔBIC {d:.0f})" for e, d in rivals]
+        ) + ", explains less of it on held-out data."
+    others = [p for p in disc.places if p.place != disc.place and p.groups]
+    close = [p.place for p in others if p.rank_gain >= 0.9 * disc.learned.rank_gain]
+    if close:
+        text += f" A term at {_and(close)} explains it about as well: the trace cannot tell."
+    heldout = {
+        "improvement_pct": ho.improvement_pct,
+        "method": disc.method,
+        "excess_share": min(max(ho.share, 0.0), 1.0),
+        "learned_improvement_pct": disc.learned.improvement_pct,
+        "insample_improvement_pct": 100.0
+        * (ho.insample_before - ho.insample_after)
+        / max(ho.insample_before, 1e-300),
+        "delta_bic_heldout": ho.score,
+    }
     return Finding(
-        effect=f"unexplained_{stage}",
-        variant=mech.variant,
+        effect="learned_" + disc.place.replace(".", "_").lower(),
+        variant=term.variant,
         stage=stage,
         explanation=text,
         params=vals,
         stderr=se,
-        units={i.name: i.unit for i in mech.param_info()},
+        units={k: info.unit for k in vals},
         evidence=ev,
         metrics_before=before,
         metrics_after=after,
         phases=phases,
-        depends_on=tuple(mech.features),
+        depends_on=disc.depends_on,
         catalog=False,
+        alternatives=tuple(rivals),
+        place=disc.place,
+        equation=equation,
+        heldout=heldout,
+        terms=tuple(terms),
+        reading=hyp,
+        term_series=basis_matrix(disc, ses.trace.n) @ np.asarray(coef, float),
     )

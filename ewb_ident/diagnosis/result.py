@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.trace import Trace
+from ewb_ident.diagnosis.artefacts import Artefact
 from ewb_ident.diagnosis.corrected import CorrectedFit
 from ewb_ident.diagnosis.locate import (
     Mismatch,
@@ -64,7 +65,7 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Finding:
-    """One explanation of a mismatch: a catalog mechanism, or a generic correction."""
+    """One explanation of a mismatch: a catalog mechanism, or a discovered term."""
 
     effect: str
     variant: str
@@ -83,6 +84,16 @@ class Finding:
     #: The mechanism's flexible form (``"drift"``, ``"spring"``, ...), ``""`` for the
     #: catalog's form.
     form: str = ""
+    #: A discovered term (physics outside the catalog): where in the model it acts
+    #: (:data:`ewb_ident.mechanisms.learned.PLACES`), its distilled equation (SI), its
+    #: held-out improvement, its terms with 90 % intervals, and a physical reading.
+    place: str = ""
+    equation: str = ""
+    heldout: dict[str, Any] = field(default_factory=dict)
+    terms: tuple[dict[str, Any], ...] = ()
+    reading: str = ""
+    #: The discovered term per sample, in the place's unit (for figures; not in JSON).
+    term_series: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -106,6 +117,17 @@ class Finding:
         out["alternatives"] = [
             {"effect": e, "delta_bic": json_number(d)} for e, d in self.alternatives
         ]
+        if self.place:
+            out["place"] = self.place
+            out["equation"] = self.equation
+            out["heldout"] = {
+                k: (v if isinstance(v, str) else json_number(v)) for k, v in self.heldout.items()
+            }
+            out["terms"] = [
+                {k: (v if isinstance(v, str) else json_number(v)) for k, v in t.items()}
+                for t in self.terms
+            ]
+            out["reading"] = self.reading or None
         return out
 
 
@@ -173,6 +195,8 @@ class DiagnosisResult:
     baseline_stderr_white: dict[str, float | None] = field(default_factory=dict)
     augmented_stderr_white: dict[str, float | None] = field(default_factory=dict)
     corrected: CorrectedFit | None = field(default=None, repr=False)
+    #: Sensor artefacts recognised (not physics), :mod:`ewb_ident.diagnosis.artefacts`.
+    artefacts: tuple[Artefact, ...] = ()
 
     def corrected_mechanisms(self) -> list[str]:
         """The catalog mechanism variants found: what ``fit --with-diagnosis`` and the
@@ -189,6 +213,7 @@ class DiagnosisResult:
             "verdict": self.verdict,
             "mismatches": [m.to_json() for m in self.mismatches],
             "findings": [f.to_json() for f in self.findings],
+            "artefacts": [a.to_json() for a in self.artefacts],
             "baseline": {
                 "metrics": metrics_json(self.baseline_metrics),
                 "params": self.baseline_params,
@@ -250,6 +275,8 @@ class DiagnosisResult:
                 lines.append(
                     f"   - {m.stage} stage, {m.phase}, {m.channel}: {m.score:.1f}x the noise"
                 )
+        for a in self.artefacts:
+            lines.append(f"  sensor artefact ({a.kind}): {a.summary}")
         for f in self.findings:
             tag = "" if f.catalog else " (not in the catalog)"
             lines.append(f"  {f.effect}{tag}: {f.explanation}")

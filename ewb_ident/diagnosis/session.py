@@ -21,9 +21,6 @@ from ewb_ident.data.stages import (
     TEACHER_FORCED,
 )
 from ewb_ident.data.trace import Trace
-from ewb_ident.diagnosis.correction import (
-    with_signals,
-)
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
@@ -47,13 +44,13 @@ from ewb_ident.model.programs import made_once, on_device
 BIC_THRESHOLD = 10.0
 #: ... and remove at least this fraction of the excess residual at its stages.
 MIN_EXPLAINED = 0.5
-#: ... unless it removes at least this share of what the generic correction removes.
+#: ... unless it removes at least this share of what a discovered term removes.
 CATALOG_SHARE = 0.8
 #: Most catalog mechanisms selected for one trace.
 MAX_MECHANISMS = 3
 #: Averaging time of the displacement that drives a hysteresis state, s.
 X_SMOOTH_S = 0.01
-#: Most stages given a generic correction.
+#: Most stages given a discovered term.
 MAX_CORRECTIONS = 2
 
 #: How to record a trace that separates two mechanisms a trace could not tell apart.
@@ -214,7 +211,7 @@ class Session:
             x_smooth=width,
             x_model=x_model,
         )
-        self.data = with_signals(data, tr)
+        self.data = data
         self.base_fits = {s: self.fit((s,), ()) for s in self.stages}
         for s, f in self.base_fits.items():
             for name in self.free[s]:
@@ -334,9 +331,7 @@ def chain_baseline(ses: Session, messages: list[str]):
     start = ses.values if base_chain is None else base_chain.values
     free = tuple(default_free("chain", [trace]))
     sigma = {ch: ses.noise[ch] for ch in CHANNELS if trace.has(ch)}
-    data = with_signals(
-        make_data(trace, sigma, start, omega_ref=ses.ctx.get("omega_ref", 1.0)), trace
-    )
+    data = make_data(trace, sigma, start, omega_ref=ses.ctx.get("omega_ref", 1.0))
     return data, free, sigma, fit_mechanisms(data, ("chain",), free, (), tuple(sigma))
 
 

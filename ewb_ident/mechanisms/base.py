@@ -40,6 +40,13 @@ Hooks
                           N*m (motor stage; explicit). Used by the generic correction.
 ``output``                ``dy = correction(signals)``: an additive correction of a
                           stage's output. Used by the generic correction.
+``voltage_series``        ``dV = voltage_series(ctx)``: a voltage added to the logged one
+                          per sample (zero-order hold), V (motor stage; a learned term's
+                          exogenous series).
+``load_series``           ``tau = load_series(ctx)``: a load torque per sample (zero-order
+                          hold), N*m (motor stage; a learned term's exogenous series).
+``force_input``           ``dx = x_shift(ctx)``: a shift of the displacement the bell
+                          sees, m (force stage).
 """
 
 from __future__ import annotations
@@ -63,6 +70,9 @@ Hook = Literal[
     "friction_coefficient",
     "sensor",
     "output",
+    "voltage_series",
+    "load_series",
+    "force_input",
 ]
 HOOKS: tuple[str, ...] = (
     "voltage",
@@ -73,6 +83,9 @@ HOOKS: tuple[str, ...] = (
     "friction_coefficient",
     "sensor",
     "output",
+    "voltage_series",
+    "load_series",
+    "force_input",
 )
 
 
@@ -319,6 +332,18 @@ class AbstractMechanism(eqx.Module):
     def unread(self, channel: str, y: jnp.ndarray, ctx: Mapping[str, Any]) -> jnp.ndarray:
         """The true series of ``channel`` estimated from the reading ``y``."""
         return y
+
+    def voltage_series(self, ctx: Mapping[str, Any]) -> jnp.ndarray | float:
+        """Voltage added to the logged one per sample, V (``voltage_series`` hook)."""
+        return 0.0
+
+    def load_series(self, ctx: Mapping[str, Any]) -> jnp.ndarray | float:
+        """Load torque per sample, N*m (``load_series`` hook)."""
+        return 0.0
+
+    def x_shift(self, ctx: Mapping[str, Any]) -> jnp.ndarray | float:
+        """Shift of the displacement the bell sees, m (``force_input`` hook)."""
+        return 0.0
 
 
 def _ref(info: ParamInfo) -> float:

@@ -65,17 +65,21 @@ def motor_states(
     mechanisms: Sequence[AbstractMechanism],
     n_sub: int,
     method: str = "exponential",
+    series: tuple[jnp.ndarray, jnp.ndarray] | None = None,
 ) -> jnp.ndarray:
     """Motor states (i [A], omega [rad/s], theta [rad]) at the sample times, shape (n, 3).
 
     Without motor mechanisms this is :func:`ewb_ident.model.integrate.seed_motor_states`:
     exact over each sample for the ``exponential`` method, ``n_sub`` Heun sub-steps for
-    ``heun`` (the seed paper's integrator).
+    ``heun`` (the seed paper's integrator). ``series``: a voltage (V) added to the
+    logged one and a load torque (N*m), per sample, each held over its sample
+    (the ``voltage_series`` and ``load_series`` hooks); both enter the linear flow
+    exactly.
     """
     volt = [m for m in mechanisms if m.uses("voltage")]
     fric = [m for m in mechanisms if m.uses("motor_friction")]
     load = [m for m in mechanisms if m.uses("load_torque")]
-    if not volt and not fric and not load:
+    if not volt and not fric and not load and series is None:
         n_seed = n_sub if method == "heun" else 1
         return seed_motor_states(p, voltage_V, dt, theta0_deg, n_seed, method, None)
     A, B_V, B_tau = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
@@ -89,11 +93,11 @@ def motor_states(
         x = gap(theta_rad * DEG_PER_RAD, p.p2, p.p1, p.p0)
         return clamp_force(x, p.F_rt, p.a, p.b, p.c)
 
-    def substep(s, V):
+    def substep(s, V, tau_ext):
         v_eff = V
         for m in volt:
             v_eff = m.voltage(v_eff, s, p)
-        s1 = matvec(E, s) + g * v_eff
+        s1 = matvec(E, s) + g * v_eff + g_tau * tau_ext
         if load:
             # The load torque as an input held over the sub-step (exact for a constant
             # one), trapezoidal in its value: at the start, then the mean with its value
@@ -128,14 +132,19 @@ def motor_states(
             s1 = s1.at[1].set(v).at[2].set(theta)
         return s1
 
-    def sample(s, V):
+    def sample(s, xs):
+        V, dv, tau_ext = xs
+
         def sub(c, _):
-            return substep(c, V), None
+            return substep(c, V + dv, tau_ext), None
 
         s_next = jax.lax.scan(sub, s, None, length=n_sub)[0]
         return s_next, s
 
-    return jax.lax.scan(sample, s0, jnp.asarray(voltage_V, dtype=A.dtype))[1]
+    volts = jnp.asarray(voltage_V, dtype=A.dtype)
+    dv, dtau = (jnp.zeros_like(volts),) * 2 if series is None else series
+    xs = (volts, jnp.broadcast_to(dv, volts.shape), jnp.broadcast_to(dtau, volts.shape))
+    return jax.lax.scan(sample, s0, xs)[1]
 
 
 def play(y: jnp.ndarray, width: jnp.ndarray) -> jnp.ndarray:
@@ -154,6 +163,8 @@ def _context(d: Mapping[str, Any]) -> dict[str, Any]:
         "t": d.get("t"),
         "scales": d.get("scales", {}),
         "data_signals": d.get("signals", {}),
+        # Basis series of learned terms, by place (``ewb_ident.diagnosis.discovery``).
+        "learned": d.get("learned", {}),
     }
     meas = d["meas"]
     if "disc_speed_rad_s" in meas:
@@ -205,7 +216,10 @@ def predict(
     sensors = _Sensors(tuple(m for m in mechanisms if m.uses("sensor")), ctx)
     out = {}
     if stage in ("motor", "chain"):
-        s = motor_states(p, meas["voltage_V"], d["dt"], theta0_deg, mechanisms, n_sub, method)
+        s = motor_states(
+            p, meas["voltage_V"], d["dt"], theta0_deg, mechanisms, n_sub, method,
+            _motor_series(mechanisms, ctx),
+        )  # fmt: skip
         theta = s[:, 2] * DEG_PER_RAD
         out["theta_deg"] = sensors.read("theta_deg", theta)
         out["current_A"] = sensors.read("current_A", s[:, 0])
@@ -233,6 +247,16 @@ def predict(
         F = sensors.unread("force_N", meas["force_N"])
     out["torque_Nm"] = sensors.read("torque_Nm", _torque(F, p, mechanisms, d, ctx))
     return out
+
+
+def _motor_series(mechanisms, ctx) -> tuple[jnp.ndarray, jnp.ndarray] | None:
+    """The per-sample voltage and load torque of the ``voltage_series`` and
+    ``load_series`` hooks (``None`` when no mechanism uses them)."""
+    dv = [m.voltage_series(ctx) for m in mechanisms if m.uses("voltage_series")]
+    dtau = [m.load_series(ctx) for m in mechanisms if m.uses("load_series")]
+    if not dv and not dtau:
+        return None
+    return jnp.asarray(sum(dv) if dv else 0.0), jnp.asarray(sum(dtau) if dtau else 0.0)
 
 
 class _Sensors:
@@ -278,7 +302,11 @@ def _force(stage, x, x_drive, p, mechanisms, d, ctx, sensors) -> jnp.ndarray:
             if "x_m" in drive:
                 x_drive = sensors.unread("x_m", drive["x_m"])
             x_drive = play(x_drive, d["x_play"])
-    F = clamp_force(x, p.F_rt, p.a, p.b, p.c)
+    x_bell = x
+    for m in mechanisms:
+        if m.uses("force_input"):
+            x_bell = x_bell + m.x_shift(ctx)
+    F = clamp_force(x_bell, p.F_rt, p.a, p.b, p.c)
     f_bell = F
     for m in force_mechs:
         F = m.clamp_force(x_drive, F, ctx)
