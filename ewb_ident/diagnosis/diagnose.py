@@ -292,9 +292,7 @@ class _Work:
     last_round: list[_Tried] = field(default_factory=list)
     alternatives: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     #: Discovered terms: (discovery, its fit, evidence, the fitted term).
-    discoveries: list[tuple[Discovery, AugFit, dict[str, float], Any]] = field(
-        default_factory=list
-    )
+    discoveries: list[tuple[Discovery, AugFit, dict[str, float], Any]] = field(default_factory=list)
     #: Catalog names a discovered term at their stage outdid on held-out data.
     rivals: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -519,29 +517,41 @@ def _fits_of(ses: Session, selected):
 
 
 def _second_opinion(ses: Session, work: _Work) -> None:
-    """Never a confident wrong name: a selected catalog mechanism stays only if it
-    removes at least as much of the excess at its stage as the best learned term there
-    does on held-out data (less :data:`CATALOG_MARGIN`). Otherwise it is dropped, its
-    stage goes to discovery, and the catalog name becomes the learned term's rival."""
-    for mech in list(work.selected):
-        others = [m for m in work.selected if m is not mech]
-        disc = discover(ses, mech.stage, _fits_of(ses, others))
+    """Never a confident wrong name: the catalog mechanisms selected at a stage stay only
+    if together they remove at least as much of the excess there as the best learned
+    term does on held-out data (less :data:`CATALOG_MARGIN`). Otherwise they are
+    dropped, the stage goes to discovery, and the catalog names become the learned
+    term's rivals."""
+    for stage in dict.fromkeys(m.stage for m in work.selected):
+        at = [m for m in work.selected if m.stage == stage]
+        others = [m for m in work.selected if m.stage != stage]
+        disc = discover(ses, stage, _fits_of(ses, others))
         if disc is None or not disc.learned.generalises:
             continue
-        cand = next(c for c in work.candidates if c.selected and c.variant == mech.variant)
-        if min(disc.learned.share, 1.0) <= cand.explained + CATALOG_MARGIN:
+        T = closure((stage,), work.selected, ses)
+        without = _fits_of(ses, others)(T)
+        ms = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(T)]
+        with_all = ses.fit(T, ms, explore=[False] * len(ms))
+        own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
+        explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
+        learned = min(disc.learned.share, 1.0)
+        if learned <= explained + CATALOG_MARGIN:
             continue
-        work.selected.remove(mech)
-        ev = work.evidence.pop(mech.variant)
-        k = next(i for i, c in enumerate(work.candidates) if c is cand)
         why = (
-            f"a learned term at {disc.place} removes {100 * min(disc.learned.share, 1):.0f} % "
-            f"of the excess on held-out data against its {100 * cand.explained:.0f} %"
+            f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
+            f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
         )
-        work.candidates[k] = Candidate(**{**cand.__dict__, "selected": False, "rejected": why})
-        work.rivals.setdefault(mech.stage, []).append((mech.id, float(ev["delta_bic"])))
-        work.notes.append(f"{mech.variant}: not reported: {why}")
-        for st in ses.mechanism_stages(mech):
+        for mech in at:
+            work.selected.remove(mech)
+            ev = work.evidence.pop(mech.variant)
+            k = next(
+                i for i, c in enumerate(work.candidates) if c.selected and c.variant == mech.variant
+            )
+            cand = work.candidates[k]
+            work.candidates[k] = Candidate(**{**cand.__dict__, "selected": False, "rejected": why})
+            work.rivals.setdefault(stage, []).append((mech.id, float(ev["delta_bic"])))
+            work.notes.append(f"{mech.variant}: not reported: {why}")
+        for st in T:
             work.current[st] = _fits_of(ses, work.selected)((st,))
 
 

@@ -57,6 +57,10 @@ from ewb_ident.model.physics import DEG_PER_RAD
 #: A learned term must lower the held-out residual by this much (a dBIC-like score of
 #: the held-out residual sums, with the effective number of residuals, no penalty).
 HELDOUT_BIC = 10.0
+#: Largest lag-1 correlation used for that effective number: a smooth remainder (a
+#: motor's angle integrates any misfit) would otherwise leave a handful of "independent"
+#: residuals; the held-out folds, not this count, guard against a term fitting noise.
+RHO_CAP = 0.9
 #: ... and remove at least this share of the held-out excess over the noise.
 MIN_HELDOUT_SHARE = 0.25
 #: An input enters the learned function only if it adds this share of the excess.
@@ -341,10 +345,74 @@ def ev(s: Signal, fn) -> np.ndarray:
     return interval_mean(fn(s.fine))
 
 
-def learned_groups(signals: Mapping[str, Signal], dt: float) -> dict[str, list[Column]]:
+#: The signal each place's quantity is naturally proportional to: a resistance that
+#: changes drops a voltage in proportion to the current, a torque constant that changes
+#: gives a torque in proportion to it, a force law's or a sensor's gain that changes
+#: adds in proportion to the force or the reading. A learned term there may be that
+#: carrier times a function of any other input (``"current*heat"``).
+CARRIERS: dict[str, tuple[str, ...]] = {
+    "motor.electrical": ("current",),
+    "motor.mechanical": ("current", "speed"),
+    "drive": ("force",),
+    "force.output": ("force",),
+    "torque.output": ("force",),
+}
+
+
+def carriers_of(place: str) -> tuple[str, ...]:
+    """The carriers of a place (a sensor's: its own channel)."""
+    if place.startswith("sensor."):
+        own = _OWN.get(place.split(".", 1)[1], "")
+        return (own,) if own else ()
+    return CARRIERS.get(place, ())
+
+
+def _modulated(c: Signal, s: Signal, fn) -> np.ndarray:
+    """The carrier ``c`` (normalised) times ``fn`` of ``s``'s raw values, per sample
+    (within each interval where both are resolved there)."""
+    if c.fine is not None and s.fine is not None:
+        return interval_mean(c.fine / c.ref * fn(s.fine))
+    return ev(c, lambda v: v / c.ref) * ev(s, fn)
+
+
+def learned_groups(
+    signals: Mapping[str, Signal], dt: float, carriers: Sequence[str] = ()
+) -> dict[str, list[Column]]:
     """The flexible basis of the learned function, one group of columns per input (and
-    per candidate period of the angle)."""
+    per candidate period of the angle), and per carrier times each other input."""
     groups: dict[str, list[Column]] = {"constant": [Column("1", "constant", None, ("one",))]}
+    for cname in carriers:
+        c = signals.get(cname)
+        if c is None:
+            continue
+        for s in signals.values():
+            if s.name == cname or s.kind not in ("level", "signed"):
+                continue
+            r = s.ref
+            cols = [
+                Column(
+                    f"{c.symbol}·{s.symbol}",
+                    f"{cname}*{s.name}",
+                    _modulated(c, s, lambda v, r=r: v / r),
+                    ("prod", cname, s.name),
+                ),
+                Column(
+                    f"{c.symbol}·{s.symbol}²",
+                    f"{cname}*{s.name}",
+                    _modulated(c, s, lambda v, r=r: (v / r) ** 2),
+                    ("prod2", cname, s.name),
+                ),
+            ]
+            if s.kind == "signed":
+                cols.append(
+                    Column(
+                        f"{c.symbol}·|{s.symbol}|",
+                        f"{cname}*{s.name}",
+                        _modulated(c, s, lambda v, r=r: np.abs(v) / r),
+                        ("prodabs", cname, s.name),
+                    )
+                )
+            groups[f"{cname}*{s.name}"] = cols
     for s in signals.values():
         r = s.ref
         if s.kind == "signed":
@@ -414,6 +482,21 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[C
     for g in chosen:
         if g == "constant":
             items.append([Column("1", "constant", None, ("one",))])
+            continue
+        if "*" in g:  # a carrier times another input
+            cname, _, other = g.partition("*")
+            c, o = signals[cname], signals[other]
+            r = o.ref
+            forms = [
+                (f"{c.symbol}·{o.symbol}", lambda v, r=r: v / r, ("prod", cname, other)),
+                (f"{c.symbol}·{o.symbol}²", lambda v, r=r: (v / r) ** 2, ("prod2", cname, other)),
+                (
+                    f"{c.symbol}·|{o.symbol}|",
+                    lambda v, r=r: np.abs(v) / r,
+                    ("prodabs", cname, other),
+                ),
+            ]
+            items += [[Column(lbl, g, _modulated(c, o, fn), form)] for lbl, fn, form in forms]
             continue
         name, _, per = g.partition("@")
         s = signals[name]
@@ -510,6 +593,12 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
     if kind == "prod":
         a, b = signals[col.form[1]], signals[col.form[2]]
         return f"{a.symbol}·{b.symbol}", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
+    if kind == "prod2":
+        a, b = signals[col.form[1]], signals[col.form[2]]
+        return f"{a.symbol}·{b.symbol}²", 1.0 / (a.ref * b.ref**2), f"{a.unit}*{b.unit}^2"
+    if kind == "prodabs":
+        a, b = signals[col.form[1]], signals[col.form[2]]
+        return f"{a.symbol}·|{b.symbol}|", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
     s = signals[col.signal]
     if kind == "pow":
         p = col.form[1]
@@ -735,14 +824,18 @@ class Design:
     def heldout(self, terms: Sequence[int], lam: float, stage: bool = False) -> float:
         """Held-out residual sum of squares with the term columns ``terms`` (``stage``:
         on the located stage's rows only)."""
+        return float(np.sum(self.heldout_folds(terms, lam, stage)))
+
+    def heldout_folds(self, terms: Sequence[int], lam: float, stage: bool = False) -> np.ndarray:
+        """:meth:`heldout` fold by fold."""
         idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
-        total = 0.0
+        total = []
         for (Mt, bt, Me, be, ee), (Ms, bs, es) in zip(self._grams, self._stage_grams, strict=True):
             x = self._solve(Mt, bt, idx, lam)
             if stage:
                 Me, be, ee = Ms, bs, es
-            total += ee + 2 * x @ be[idx] + x @ Me[np.ix_(idx, idx)] @ x
-        return float(total)
+            total.append(ee + 2 * x @ be[idx] + x @ Me[np.ix_(idx, idx)] @ x)
+        return np.asarray(total, float)
 
     def best_heldout(self, terms: Sequence[int]) -> tuple[float, float]:
         """The lowest held-out RSS over the ridge penalties, and its penalty."""
@@ -758,6 +851,22 @@ class Design:
         x = self._solve(M, b, idx, lam)
         return float(ee + 2 * x @ b[idx] + x @ M[np.ix_(idx, idx)] @ x), x
 
+    def consistent(self, terms: Sequence[int], lam: float) -> int:
+        """The folds where the term behaves as physics that generalises, counted: a fold
+        whose residual exceeds the noise (by three standard deviations of a chi-square)
+        is lowered, and a fold at the noise is not raised beyond that; when four or more
+        folds show a mismatch, one of them may be spared. The count equals the number of
+        folds when the term is consistent."""
+        before = self.heldout_folds([], 0.0)
+        after = self.heldout_folds(terms, lam)
+        rows = np.array([np.count_nonzero(self.fold == k) for k in range(self.n_folds)])
+        noise = self.noise_rows * rows / max(rows.sum(), 1)
+        tol = 3.0 * np.sqrt(2.0 * np.maximum(noise, 1.0))
+        mismatch = before > noise + tol
+        ok = np.where(mismatch, after < before, after <= before + tol)
+        spare = 1 if np.count_nonzero(mismatch) >= 4 else 0
+        return int(min(np.count_nonzero(ok) + spare, self.n_folds))
+
     def rho_after(self, terms: Sequence[int], lam: float) -> float:
         """Lag-1 autocorrelation of the residual with the term columns ``terms`` fitted
         (clipped to [0, 0.98]): what remains serially correlated after the term."""
@@ -772,7 +881,7 @@ class Design:
         """dBIC-like score of a held-out change (negative: better), with the effective
         number of residuals of an AR(1) residual of lag-1 correlation ``rho`` (that of
         the residual with the term; default the residual without it)."""
-        rho = self.rho if rho is None else rho
+        rho = min(self.rho if rho is None else rho, RHO_CAP)
         n = float(np.count_nonzero(self.fold >= 0)) * (1 - rho) / (1 + rho)
         return n * float(np.log(max(after, 1e-300) / max(before, 1e-300)))
 
@@ -794,13 +903,22 @@ class PlaceFit:
     score: float
     #: Held-out gain on the located stage's rows alone.
     stage_gain: float = 0.0
+    #: Folds where the term is consistent (:meth:`Design.consistent`), of how many.
+    folds_improved: int = 0
+    n_folds: int = 0
 
     @property
     def rank_gain(self) -> float:
         """What places are ranked by: the held-out gain at the located stage, no more
         than the gain over every stage the term shows in (a sensor's term must not
-        worsen the other stage, and earns nothing there)."""
-        return min(self.heldout_before - self.heldout_after, self.stage_gain)
+        worsen the other stage it feeds); the whole gain when the other stage gains
+        clearly too (by ``2 HELDOUT_BIC`` and a tenth of the located stage's gain): a
+        sensor's error shows downstream, a term of the physics does not."""
+        total = self.heldout_before - self.heldout_after
+        other = total - self.stage_gain
+        if other > max(2 * HELDOUT_BIC, 0.1 * self.stage_gain):
+            return total
+        return min(total, self.stage_gain)
 
     @property
     def share(self) -> float:
@@ -814,7 +932,10 @@ class PlaceFit:
 
     @property
     def generalises(self) -> bool:
-        return self.score <= -HELDOUT_BIC and self.share >= MIN_HELDOUT_SHARE
+        """Held-out score and share beyond their thresholds, and consistent over the
+        folds (:meth:`Design.consistent`)."""
+        consistent = self.folds_improved >= self.n_folds
+        return self.score <= -HELDOUT_BIC and self.share >= MIN_HELDOUT_SHARE and consistent
 
 
 @dataclass(frozen=True)
@@ -1041,6 +1162,8 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
         excess,
         d.score(base_ho, cur, d.rho_after(idx, lam)),
         stage_gain,
+        d.consistent(idx, lam),
+        d.n_folds,
     )
 
 
@@ -1079,6 +1202,8 @@ def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
         learned.excess,
         d.score(learned.heldout_before, cur, d.rho_after(cols, RIDGES[0])),
         learned.stage_gain,
+        d.consistent(cols, RIDGES[0]),
+        d.n_folds,
     )
     coef = x[d.kb :] / d.norms[cols] if cols else np.zeros(0)
     return fit, [items[j] for j in chosen], coef
@@ -1118,7 +1243,7 @@ def discover(ses, stage: str, fits_of, *, margin_places: float = HELDOUT_BIC) ->
         fit = fits_of(stages)
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
         sig = input_signals(trace, model_channels(ses, fit), fine)
-        groups = learned_groups(sig, trace.dt)
+        groups = learned_groups(sig, trace.dt, carriers_of(place))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue
