@@ -23,6 +23,10 @@ Scoring (decided before the first run; nothing here set a threshold of the tool)
 * *a, b, c, mu*: the whole chain refitted with the findings holds each truth within its
   90 % interval (estimate +- 1.645 standard errors).
 
+Every figure is given over all cases, and again without :data:`HELD`: families that
+are not outside the catalog and the model (a sensor's low-pass is the catalog's
+``sensor_delay`` lag form; a supply dropping ``R_s i`` is the model's resistance).
+
 Usage (rows are appended after each case, so a run resumes)::
 
     python studies/discovery_uncatalogued.py --seed S --out DIR --shard 0/2 &
@@ -54,6 +58,12 @@ SEED = 20261127
 PER_FORM = 2
 PER_NUISANCE = 4
 
+#: Families (or family, form) that are not physics outside the catalog and the model,
+#: reported apart (decided from the physics, before the reported run): a first- or
+#: second-order low-pass on a sensor is the catalog's ``sensor_delay`` in its lag form
+#: (``studies/diagnosis_accuracy.py``, ``FORMS``); a supply that drops ``R_s i`` is the
+#: seed model's own resistance ``R + R_s``, which the fit absorbs exactly.
+HELD = {"sensor_lowpass", ("supply_sag", "a")}
 #: Signals of the tool's findings taken as the planted term's (truth vocabulary).
 SAME: dict[str, set[str]] = {
     "current": {"current", "direction"},
@@ -257,6 +267,8 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
         return n, loc, ho, dep, cat, inn, chk
 
     n, loc, ho, dep, cat, inn, chk = stats(phys)
+    held = [r for r in phys if (r["family"], r["form"]) not in HELD and r["family"] not in HELD]
+    n2, loc2, ho2, dep2, cat2, inn2, chk2 = stats(held)
     lines = [
         "# Discovery beyond the catalog: physics in no catalog, on an independent rig",
         "",
@@ -277,6 +289,11 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
         f"| corrected a, b, c, mu inside their 90 % intervals | {_pct(inn, chk)} | >= 85 % |",
         f"| clean traces with nuisances: false alarms (verdict not none) | "
         f"{_pct(sum(r['verdict'] != 'none' for r in clean), len(clean))} | <= 5 % |",
+        "",
+        "Without the cases of `HELD` (physics the catalog or the seed model already "
+        "holds, decided before this run; see the script's docstring): "
+        f"located {_pct(loc2, n2)}, held-out {_pct(ho2, n2)}, dependency {_pct(dep2, n2)}, "
+        f"catalog name {_pct(cat2, n2)}, a, b, c, mu inside {_pct(inn2, chk2)}.",
         "",
         "## Per family",
         "",

@@ -18,6 +18,7 @@ import pytest
 from ewb_ident import rig
 from ewb_ident.data.outputs import json_text
 from ewb_ident.diagnosis import discovery as disc_mod
+from ewb_ident.diagnosis import heldout, inputs
 from ewb_ident.diagnosis.diagnose import diagnose
 
 SETTINGS = dict(seed=5, sample_rate_hz=200.0, duration_s=3.0, profile="position")
@@ -109,10 +110,10 @@ def test_the_heldout_check_refuses_a_term_that_only_fits_noise():
     rng = np.random.default_rng(0)
     n = 1200
     fold = np.minimum((np.arange(n) * 4) // n, 3)
-    cols = [disc_mod.Column(f"z{j}", f"s{j}", None) for j in range(60)]
+    cols = [inputs.Column(f"z{j}", f"s{j}", None) for j in range(60)]
     G = rng.standard_normal((n, 60))
     G /= np.linalg.norm(G, axis=0)
-    d = disc_mod.Design(rng.standard_normal(n), np.ones((n, 1)), fold, cols, G, float(n), 4,
+    d = heldout.Design(rng.standard_normal(n), np.ones((n, 1)), fold, cols, G, float(n), 4,
                         0.0, np.ones(60))  # fmt: skip
     groups = {f"g{k}": cols[6 * k : 6 * k + 6] for k in range(10)}
     before, _ = d.insample([], 0.0)

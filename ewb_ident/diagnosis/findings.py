@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
-from ewb_ident.diagnosis.discovery import Discovery, basis_matrix, physical, reading
+from ewb_ident.diagnosis.discovery import Discovery, basis_matrix, reading
+from ewb_ident.diagnosis.inputs import physical
 from ewb_ident.diagnosis.locate import (
     PHASES,
     Mismatch,
@@ -246,9 +247,11 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
         + (f" A reading to inspect: {hyp}." if hyp else " No known signature matches it.")
     )
     if rivals:
-        text += " The nearest catalog name, " + _and(
-            [f"{e} (ΔBIC {d:.0f})" for e, d in rivals]
-        ) + ", explains less of it on held-out data."
+        text += (
+            " The nearest catalog name, "
+            + _and([f"{e} (ΔBIC {d:.0f})" for e, d in rivals])
+            + ", explains less of it on held-out data."
+        )
     others = [p for p in disc.places if p.place != disc.place and p.groups]
     close = [p.place for p in others if p.rank_gain >= 0.9 * disc.learned.rank_gain]
     if close:

@@ -1,0 +1,178 @@
+"""Held-out evidence for a learned term: folds of a trace (:func:`folds`) and the
+linearised problem at one place solved on some folds and scored on the others
+(:class:`Design`). Used by :mod:`ewb_ident.diagnosis.discovery`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ewb_ident.diagnosis.inputs import Column
+
+#: A learned term must lower the held-out residual by this much (a dBIC-like score of
+#: the held-out residual sums, with the effective number of residuals, no penalty).
+HELDOUT_BIC = 10.0
+#: Largest lag-1 correlation used for that effective number: a smooth remainder (a
+#: motor's angle integrates any misfit) would otherwise leave a handful of "independent"
+#: residuals; the held-out folds, not this count, guard against a term fitting noise.
+RHO_CAP = 0.9
+#: Ridge penalties tried (relative to the mean diagonal of the term's Gram matrix).
+RIDGES = (1e-4, 1e-2, 1.0)
+
+
+# ----------------------------------------------------------------------------- folds
+
+
+def folds(labels: np.ndarray) -> tuple[np.ndarray, str]:
+    """Fold index of each sample, and the method in words: leave one apply out when the
+    trace holds three or more applies (each from the open pads before it to those
+    after), otherwise four contiguous blocks in time."""
+    n = labels.size
+    open_ = labels == "gapping"
+    starts = [i for i in range(1, n) if open_[i - 1] and not open_[i]]
+    if len(starts) >= 3:
+        cuts = [0]
+        for a, b in zip(starts[:-1], starts[1:], strict=True):
+            gaps = np.flatnonzero(open_[a:b])
+            cuts.append(a + int(gaps[len(gaps) // 2]) if gaps.size else b)
+        cuts.append(n)
+        idx = np.zeros(n, int)
+        for k in range(len(cuts) - 1):
+            idx[cuts[k] : cuts[k + 1]] = k
+        return idx, f"leave-one-apply-out over {len(cuts) - 1} applies"
+    return np.minimum((np.arange(n) * 4) // n, 3), "4-fold blocked cross-validation in time"
+
+
+# ----------------------------------------------------------------------------- solver
+
+
+@dataclass
+class Design:
+    """The linearised problem at one place: residual ``r`` of the current fit, Jacobian
+    ``J`` of the stage's own parameters, the effect of each basis column, fold per row;
+    Gram matrices per fold for fast subset solves."""
+
+    r: np.ndarray
+    J: np.ndarray
+    fold: np.ndarray
+    cols: list[Column]
+    G: np.ndarray
+    noise_rows: float
+    n_folds: int
+    rho: float
+    norms: np.ndarray
+    #: Rows of the located stage's channels (a sensor's term also shows downstream).
+    stage_rows: np.ndarray | None = None
+    _grams: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]] = field(
+        default_factory=list, repr=False
+    )
+
+    def __post_init__(self):
+        A = np.concatenate([self.J, self.G], axis=1)
+        own = np.ones(self.r.size, bool) if self.stage_rows is None else self.stage_rows
+        self._stage_grams = []
+        for k in range(self.n_folds):
+            te = self.fold == k
+            tr = ~te & (self.fold >= 0)
+            At, rt = A[tr], self.r[tr]
+            Ae, re = A[te], self.r[te]
+            self._grams.append((At.T @ At, At.T @ rt, Ae.T @ Ae, Ae.T @ re, float(re @ re)))
+            As, rs = A[te & own], self.r[te & own]
+            self._stage_grams.append((As.T @ As, As.T @ rs, float(rs @ rs)))
+        self._full = (A.T @ A, A.T @ self.r, float(self.r @ self.r))
+
+    @property
+    def kb(self) -> int:
+        return self.J.shape[1]
+
+    def _solve(self, M, b, idx, lam):
+        Mi = M[np.ix_(idx, idx)]
+        d = np.diag(Mi).copy()
+        pen = np.where(np.arange(len(idx)) < self.kb, 1e-9 * (d + 1e-300), 0.0)
+        if len(idx) > self.kb:
+            term_scale = float(np.mean(d[self.kb :])) if np.any(d[self.kb :]) else 1.0
+            pen[self.kb :] = lam * term_scale
+        try:
+            return np.linalg.solve(Mi + np.diag(pen), -b[idx])
+        except np.linalg.LinAlgError:
+            return np.linalg.lstsq(Mi + np.diag(pen), -b[idx], rcond=None)[0]
+
+    def heldout(self, terms: Sequence[int], lam: float, stage: bool = False) -> float:
+        """Held-out residual sum of squares with the term columns ``terms`` (``stage``:
+        on the located stage's rows only)."""
+        return float(np.sum(self.heldout_folds(terms, lam, stage)))
+
+    def heldout_folds(self, terms: Sequence[int], lam: float, stage: bool = False) -> np.ndarray:
+        """:meth:`heldout` fold by fold."""
+        idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
+        total = []
+        for (Mt, bt, Me, be, ee), (Ms, bs, es) in zip(self._grams, self._stage_grams, strict=True):
+            x = self._solve(Mt, bt, idx, lam)
+            if stage:
+                Me, be, ee = Ms, bs, es
+            total.append(ee + 2 * x @ be[idx] + x @ Me[np.ix_(idx, idx)] @ x)
+        return np.asarray(total, float)
+
+    def best_heldout(self, terms: Sequence[int]) -> tuple[float, float]:
+        """The lowest held-out RSS over the ridge penalties, and its penalty."""
+        if not len(terms):
+            return self.heldout([], 0.0), 0.0
+        got = [(self.heldout(terms, lam), lam) for lam in RIDGES]
+        return min(got)
+
+    def insample(self, terms: Sequence[int], lam: float) -> tuple[float, np.ndarray]:
+        """In-sample RSS and the coefficients (stage parameters first) on all rows."""
+        M, b, ee = self._full
+        idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
+        x = self._solve(M, b, idx, lam)
+        return float(ee + 2 * x @ b[idx] + x @ M[np.ix_(idx, idx)] @ x), x
+
+    def consistent(self, terms: Sequence[int], lam: float) -> int:
+        """The folds where the term behaves as physics that generalises, counted: a fold
+        whose residual exceeds the noise (by three standard deviations of a chi-square)
+        is lowered, and a fold at the noise is not raised beyond that; when four or more
+        folds show a mismatch, one of them may be spared. The count equals the number of
+        folds when the term is consistent."""
+        before = self.heldout_folds([], 0.0)
+        after = self.heldout_folds(terms, lam)
+        rows = np.array([np.count_nonzero(self.fold == k) for k in range(self.n_folds)])
+        noise = self.noise_rows * rows / max(rows.sum(), 1)
+        tol = 3.0 * np.sqrt(2.0 * np.maximum(noise, 1.0))
+        mismatch = before > noise + tol
+        ok = np.where(mismatch, after < before, after <= before + tol)
+        spare = 1 if np.count_nonzero(mismatch) >= 4 else 0
+        return int(min(np.count_nonzero(ok) + spare, self.n_folds))
+
+    def rho_after(self, terms: Sequence[int], lam: float) -> float:
+        """Lag-1 autocorrelation of the residual with the term columns ``terms`` fitted
+        (clipped to [0, 0.98]): what remains serially correlated after the term."""
+        _, x = self.insample(terms, lam)
+        idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
+        A = np.concatenate([self.J, self.G], axis=1)[:, idx]
+        e = (self.r + A @ x)[self.fold >= 0]
+        e = e - np.mean(e)
+        return float(np.clip(e[1:] @ e[:-1] / max(e @ e, 1e-300), 0.0, 0.98))
+
+    def score(self, before: float, after: float, rho: float | None = None) -> float:
+        """dBIC-like score of a held-out change (negative: better), with the effective
+        number of residuals of an AR(1) residual of lag-1 correlation ``rho`` (that of
+        the residual with the term; default the residual without it)."""
+        rho = min(self.rho if rho is None else rho, RHO_CAP)
+        n = float(np.count_nonzero(self.fold >= 0)) * (1 - rho) / (1 + rho)
+        return n * float(np.log(max(after, 1e-300) / max(before, 1e-300)))
+
+
+def white_level(r: np.ndarray, fold_rows: np.ndarray) -> float:
+    """The residual's white-noise level (differences of neighbours), clipped to the
+    floor-scale band the location test uses."""
+    from ewb_ident.diagnosis.locate import FLOOR_SCALE
+
+    e = r[fold_rows >= 0]
+    if e.size < 5:
+        return 1.0
+    d = np.diff(e)
+    level = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2)
+    return float(np.clip(level, *FLOOR_SCALE))

@@ -1,0 +1,612 @@
+"""The inputs of a learned term, and its bases: every signal the trace and the model
+supply (:func:`input_signals`), the flexible basis of the learned function
+(:func:`learned_groups`), the library an equation is distilled from (:func:`library`),
+and the physical form of each term (:func:`physical`). Used by
+:mod:`ewb_ident.diagnosis.discovery`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import expm
+
+from ewb_ident.data.metrics import smooth
+from ewb_ident.data.stages import STAGE_OUTPUTS
+from ewb_ident.model.physics import DEG_PER_RAD
+
+#: Candidate periods of a term periodic in the pinion angle, degrees.
+PERIODS_DEG = (360.0, 180.0, 120.0, 90.0, 72.0, 60.0, 45.0, 40.0, 36.0, 30.0, 24.0, 20.0)
+#: Time constants of the low-passed histories, s.
+HISTORY_S = (0.1, 0.5, 2.0)
+
+#: The signal named after each channel (a sensor's own signal).
+OWN_SIGNAL = {
+    "force_N": "force",
+    "torque_Nm": "torque",
+    "x_m": "x",
+    "theta_deg": "angle",
+    "current_A": "current",
+}
+
+
+# ----------------------------------------------------------------------------- signals
+
+
+@dataclass(frozen=True)
+class Signal:
+    """One input a learned term may depend on.
+
+    ``kind``: ``signed`` (speed, current, rates), ``level`` (force, time, heat ...),
+    ``angle`` (the pinion angle, degrees: a level and periodic candidates) or ``phase``
+    (the disc angle, rad). ``ref``: its size (the largest magnitude), in ``unit``.
+    """
+
+    name: str
+    values: np.ndarray = field(repr=False)
+    unit: str
+    kind: str
+    words: str
+    symbol: str
+    ref: float
+    #: Values within each sample interval, shape (n, m + 1) (a model state inside the
+    #: motor's integration), or ``None``.
+    fine: np.ndarray | None = field(default=None, repr=False)
+
+
+def _rate(y: np.ndarray, dt: float, width: int) -> np.ndarray:
+    return np.gradient(smooth(y, width), dt)
+
+
+def _lowpass(y: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    a = float(np.exp(-dt / tau))
+    from scipy.signal import lfilter
+
+    return lfilter([1.0 - a], [1.0, -a], y, zi=[a * y[0]])[0]
+
+
+def _integral(y: np.ndarray, dt: float) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(0.5 * (y[1:] + y[:-1]))]) * dt
+
+
+def leave_one_out(y: np.ndarray, half: int) -> np.ndarray:
+    """Centred moving average over ``2 half`` neighbours, the sample itself left out
+    (ends: the neighbours there are). A recorded channel's noise at a sample is then
+    not in the input at that sample, so a term cannot fit the residual's noise through
+    its input; the central differences of the result hold no noise of their own sample
+    either (it enters both neighbours equally)."""
+    y = np.asarray(y, float)
+    n = y.size
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    k = np.arange(n)
+    lo, hi = np.maximum(k - half, 0), np.minimum(k + half + 1, n)
+    count = hi - lo - 1
+    return (c[hi] - c[lo] - y) / np.maximum(count, 1)
+
+
+#: Longest sub-step of the motor states resolved within each sample interval, s.
+FINE_STEP_S = 2.5e-4
+
+
+def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
+    """The motor model's states within each sample interval from the logged voltage
+    (the fit's parameters ``values``; exact zero-order-hold flow at sub-steps of at most
+    :data:`FINE_STEP_S`): ``current`` (A), ``speed`` (rad/s), ``angle`` (deg), each of
+    shape (n, m + 1), the interval's start and end included. At the sample times they
+    are the motor stage's own prediction."""
+    dt, n = trace.dt, trace.n
+    m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
+    R, L, kb, kT, M, v = (float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v"))
+    A = np.array([[-R / L, -kb / L, 0.0], [kT / M, -v / M, 0.0], [0.0, 1.0, 0.0]])
+    aug = np.zeros((4, 4))
+    aug[:3, :3], aug[0, 3] = A * (dt / m), dt / m / L
+    E = expm(aug)
+    Ad, bd = E[:3, :3], E[:3, 3]
+    V = trace["voltage_V"]
+    # The flow over a whole sample, then each sub-step from the sample's start state.
+    Am = np.linalg.matrix_power(Ad, m)
+    bm = sum(np.linalg.matrix_power(Ad, j) @ bd for j in range(m))
+    starts = np.empty((n, 3))
+    x = np.array([0.0, 0.0, float(values.get("theta0_deg", 0.0)) / DEG_PER_RAD])
+    for k in range(n):
+        starts[k] = x
+        x = Am @ x + bm * V[k]
+    out = np.empty((n, m + 1, 3))
+    S = starts
+    out[:, 0] = S
+    for j in range(1, m + 1):
+        S = S @ Ad.T + bd[None, :] * V[:, None]
+        out[:, j] = S
+    return {"current": out[..., 0], "speed": out[..., 1], "angle": out[..., 2] * DEG_PER_RAD}
+
+
+def input_signals(
+    trace, model: Mapping[str, np.ndarray], fine: Mapping[str, np.ndarray] | None = None
+) -> dict[str, Signal]:
+    """Every signal a learned term may depend on, from the trace and the model.
+
+    Recorded channels enter through :func:`leave_one_out` (their noise at a sample is
+    not in the input there), rates as central differences of that; the channels in
+    ``model`` enter as the model gives them.
+
+    Parameters
+    ----------
+    trace
+        The trace.
+    model
+        Model series that replace recorded channels (:func:`model_channels`: the
+        outputs of the stages a term is fitted at and what follows from them, which as
+        recorded would carry the very mismatch the term is to explain), and of channels
+        the trace does not record, in the channel's unit.
+    fine
+        The motor's states within each sample interval (:func:`motor_fine`): a term
+        inside the motor's integration depends on them there, so they replace the
+        current, speed and angle (and the heat is integrated from them).
+    """
+    dt, n = trace.dt, trace.n
+    half = max(1, round(0.005 / dt))
+    width = 1
+    out: dict[str, Signal] = {}
+
+    def add(name, values, unit, kind, words, symbol):
+        v = np.asarray(values, float)[:n]
+        within = None if fine is None else fine.get(name)
+        if within is not None:
+            within = np.asarray(within, float)
+            v = interval_mean(within)
+        ref = float(np.max(np.abs(v))) if v.size else 0.0
+        if not np.all(np.isfinite(v)) or ref <= 0 or np.ptp(v) <= 1e-9 * ref:
+            return
+        if within is not None:
+            ref = max(ref, float(np.max(np.abs(within))))
+        out[name] = Signal(name, v, unit, kind, words, symbol, ref, within)
+
+    def channel(ch):
+        if ch in model:
+            return np.asarray(model[ch], float)[:n], True
+        if trace.has(ch):
+            return leave_one_out(trace[ch], half), False
+        return None, False
+
+    t = trace.time_s - trace.time_s[0]
+    add("time", t, "s", "level", "elapsed time", "t")
+    if trace.has("voltage_V"):
+        V = trace["voltage_V"]
+        add("voltage", V, "V", "signed", "the motor voltage", "V")
+        add("voltage_rate", np.gradient(V, dt), "V/s", "signed", "the voltage's rate", "dV/dt")
+    th, th_model = channel("theta_deg")
+    if th is not None:
+        omega = _rate(th, dt, width) / DEG_PER_RAD
+        add("angle", th, "deg", "angle", "the pinion angle", "θ")
+        add("speed", omega, "rad/s", "signed", "the motor speed", "ω")
+    cur, _ = channel("current_A")
+    if fine is not None and "current" in fine:
+        cur = np.asarray(fine["current"])[:, 0]
+    if cur is not None:
+        add("current", cur, "A", "signed", "the motor current", "i")
+        if fine is not None and "current" in fine:
+            f2 = np.asarray(fine["current"]) ** 2
+            per = interval_mean(f2)
+            heat = np.concatenate([[0.0], np.cumsum(per[:-1])]) * dt
+        else:
+            heat = _integral(cur**2, dt)
+        add("heat", heat, "A^2*s", "level", "heat dissipated, ∫i²dt", "∫i²dt")
+    levels = (
+        ("x_m", "x", "m", "the piston displacement", "x", "the piston speed"),
+        ("force_N", "force", "N", "the clamping force", "F", "the rate of the force"),
+        ("torque_Nm", "torque", "N*m", "the brake torque", "T", "the rate of the brake torque"),
+    )
+    for ch, name, unit, words, sym, rate_words in levels:
+        y, modelled = channel(ch)
+        if y is None:
+            continue
+        add(name, y, unit, "level", words, sym)
+        rate = _rate(y, dt, 1 if modelled else width)
+        add(f"{name}_rate", rate, f"{unit}/s", "signed", rate_words, f"d{sym}/dt")
+        if name != "force":
+            continue
+        for tau in HISTORY_S:
+            hist = f"the force low-passed over {tau:g} s (its recent history)"
+            add(f"force_history_{tau:g}s", _lowpass(y, dt, tau), "N", "level", hist, f"F̄{tau:g}s")
+    if trace.has("disc_speed_rad_s"):
+        wd = trace["disc_speed_rad_s"]
+        if np.ptp(wd) > 0.02 * max(float(np.max(np.abs(wd))), 1e-9):
+            add("disc_speed", wd, "rad/s", "level", "the disc speed", "ω_d")
+        add(
+            "distance", _integral(np.abs(wd), dt), "rad", "level", "the disc's sliding angle", "s_d"
+        )
+        add(
+            "disc_angle",
+            np.mod(_integral(wd, dt), 2 * np.pi),
+            "rad",
+            "phase",
+            "the disc angle",
+            "φ_d",
+        )
+        if "torque" in out:
+            add(
+                "energy",
+                _integral(np.abs(out["torque"].values * wd), dt),
+                "J",
+                "level",
+                "the braking energy dissipated",
+                "E",
+            )
+    return out
+
+
+def model_channels(ses, fit) -> dict[str, np.ndarray]:
+    """Model series for the inputs of a term fitted with ``fit``: its stages' own
+    outputs as it predicts them and the channels that follow from them along the chain
+    (the gap curve, the bell, the brake torque of the fit's values), and the motor's
+    current where the trace records none. Recorded, these channels would carry the
+    mismatch itself: a term could explain the force by the recorded force."""
+    from ewb_ident.model.physics import brake_torque, clamp_force, gap
+
+    v = dict(ses.values) | dict(fit.values)
+    tr = ses.trace
+    half = max(1, round(0.005 / tr.dt))
+    out: dict[str, np.ndarray] = {}
+    # A teacher-forced stage's prediction carries its measured input's noise, which is
+    # in the residual too: the stage is evaluated at the input's leave-one-out average.
+    for st in fit.stages:
+        if st == "motor":
+            for ch in STAGE_OUTPUTS[st]:
+                if ch in fit.predictions:
+                    out[ch] = np.asarray(fit.predictions[ch], float)
+        elif st == "gap":
+            th = leave_one_out(tr["theta_deg"], half)
+            out["x_m"] = np.asarray(gap(th, v["p2"], v["p1"], v["p0"]))
+        elif st == "force":
+            x = leave_one_out(tr["x_m"], half)
+            out["force_N"] = np.asarray(clamp_force(x, v["F_rt"], v["a"], v["b"], v["c"]))
+        elif st == "torque":
+            F = leave_one_out(tr["force_N"], half)
+            out["torque_Nm"] = np.asarray(brake_torque(F, v["mu"], tr.r_eff_m))
+    if "theta_deg" in out and "x_m" not in out:
+        out["x_m"] = np.asarray(gap(out["theta_deg"], v["p2"], v["p1"], v["p0"]))
+    if "x_m" in out and "force_N" not in out:
+        out["force_N"] = np.asarray(clamp_force(out["x_m"], v["F_rt"], v["a"], v["b"], v["c"]))
+    if "force_N" in out and "torque_Nm" not in out:
+        out["torque_Nm"] = np.asarray(brake_torque(out["force_N"], v["mu"], ses.trace.r_eff_m))
+    mot = ses.base_fits.get("motor")
+    if not tr.has("current_A") and "current_A" not in out:
+        if mot is not None and "current_A" in mot.predictions:
+            out["current_A"] = np.asarray(mot.predictions["current_A"], float)
+    return out
+
+
+# ----------------------------------------------------------------------------- basis
+
+
+@dataclass(frozen=True)
+class Column:
+    """One basis series: its name (an expression), the input it depends on, values."""
+
+    label: str
+    signal: str
+    values: np.ndarray = field(repr=False)
+    #: For the equation: ``(kind, *args)`` (see :func:`render`).
+    form: tuple = ()
+
+
+#: Knots of the piecewise-linear basis of a level, as shares of its range.
+KNOTS = (1 / 7, 2 / 7, 3 / 7, 4 / 7, 5 / 7, 6 / 7)
+
+
+def _hinge_knots(z: np.ndarray, shares: Sequence[float] = KNOTS) -> list[float]:
+    lo, hi = float(np.min(z)), float(np.max(z))
+    return [lo + q * (hi - lo) for q in shares]
+
+
+def _times(k: int) -> str:
+    return "" if k == 1 else str(k)
+
+
+def interval_mean(f: np.ndarray) -> np.ndarray:
+    """The mean over each sample interval of values within it, shape (n, m + 1) ->
+    (n,) (trapezoid rule)."""
+    return (0.5 * (f[:, 0] + f[:, -1]) + f[:, 1:-1].sum(axis=1)) / (f.shape[1] - 1)
+
+
+def ev(s: Signal, fn) -> np.ndarray:
+    """``fn`` of a signal's raw values per sample: for a signal resolved within each
+    sample interval (a model state inside the motor's integration, :attr:`Signal.fine`),
+    the interval's mean of ``fn`` (trapezoid), as a term held over the interval sees it."""
+    if s.fine is None:
+        return fn(s.values)
+    return interval_mean(fn(s.fine))
+
+
+#: The signal each place's quantity is naturally proportional to: a resistance that
+#: changes drops a voltage in proportion to the current, a torque constant that changes
+#: gives a torque in proportion to it, a force law's or a sensor's gain that changes
+#: adds in proportion to the force or the reading. A learned term there may be that
+#: carrier times a function of any other input (``"current*heat"``).
+CARRIERS: dict[str, tuple[str, ...]] = {
+    "motor.electrical": ("current",),
+    "motor.mechanical": ("current", "speed"),
+    "drive": ("force",),
+    "force.output": ("force",),
+    "torque.output": ("force",),
+}
+
+
+def carriers_of(place: str) -> tuple[str, ...]:
+    """The carriers of a place (a sensor's: its own channel)."""
+    if place.startswith("sensor."):
+        own = OWN_SIGNAL.get(place.split(".", 1)[1], "")
+        return (own,) if own else ()
+    return CARRIERS.get(place, ())
+
+
+def _modulated(c: Signal, s: Signal, fn) -> np.ndarray:
+    """The carrier ``c`` (normalised) times ``fn`` of ``s``'s raw values, per sample
+    (within each interval where both are resolved there)."""
+    if c.fine is not None and s.fine is not None:
+        return interval_mean(c.fine / c.ref * fn(s.fine))
+    return ev(c, lambda v: v / c.ref) * ev(s, fn)
+
+
+def learned_groups(
+    signals: Mapping[str, Signal], dt: float, carriers: Sequence[str] = ()
+) -> dict[str, list[Column]]:
+    """The flexible basis of the learned function, one group of columns per input (and
+    per candidate period of the angle), and per carrier times each other input."""
+    groups: dict[str, list[Column]] = {"constant": [Column("1", "constant", None, ("one",))]}
+    for cname in carriers:
+        c = signals.get(cname)
+        if c is None:
+            continue
+        for s in signals.values():
+            if s.name == cname or s.kind not in ("level", "signed"):
+                continue
+            r = s.ref
+            cols = [
+                Column(
+                    f"{c.symbol}·{s.symbol}",
+                    f"{cname}*{s.name}",
+                    _modulated(c, s, lambda v, r=r: v / r),
+                    ("prod", cname, s.name),
+                ),
+                Column(
+                    f"{c.symbol}·{s.symbol}²",
+                    f"{cname}*{s.name}",
+                    _modulated(c, s, lambda v, r=r: (v / r) ** 2),
+                    ("prod2", cname, s.name),
+                ),
+            ]
+            if s.kind == "signed":
+                cols.append(
+                    Column(
+                        f"{c.symbol}·|{s.symbol}|",
+                        f"{cname}*{s.name}",
+                        _modulated(c, s, lambda v, r=r: np.abs(v) / r),
+                        ("prodabs", cname, s.name),
+                    )
+                )
+            groups[f"{cname}*{s.name}"] = cols
+    for s in signals.values():
+        r = s.ref
+        if s.kind == "signed":
+            groups[s.name] = [
+                Column(f"{s.symbol}", s.name, ev(s, lambda v, r=r: v / r), ("pow", 1)),
+                Column(
+                    f"{s.symbol}|{s.symbol}|",
+                    s.name,
+                    ev(s, lambda v, r=r: v * np.abs(v) / r**2),
+                    ("spow", 2),
+                ),
+                Column(f"{s.symbol}³", s.name, ev(s, lambda v, r=r: (v / r) ** 3), ("pow", 3)),
+                Column(
+                    f"sign({s.symbol})",
+                    s.name,
+                    ev(s, lambda v, r=r: np.tanh(v / r / 0.05)),
+                    ("tanh", 0.05),
+                ),
+            ]
+        elif s.kind == "phase":
+            groups[s.name] = [
+                Column(
+                    f"{f}({_times(k)}{s.symbol})",
+                    s.name,
+                    ev(s, lambda v, r=r, k=k, fn=fn: fn(k * v)),
+                    ("harm", k, f),
+                )
+                for k in (1, 2)
+                for f, fn in (("sin", np.sin), ("cos", np.cos))
+            ]
+        else:
+            cols = [Column(s.symbol, s.name, ev(s, lambda v, r=r: v / r), ("pow", 1))]
+            for k in _hinge_knots(s.values / r):
+                cols.append(
+                    Column(
+                        f"max(0, {s.symbol} − {k * r:.3g})",
+                        s.name,
+                        ev(s, lambda v, r=r, k=k: np.maximum(v / r - k, 0.0)),
+                        ("hinge", k),
+                    )
+                )
+            groups[s.name] = cols
+            if s.kind == "angle":
+                vals = s.values if s.fine is None else s.fine.reshape(-1)
+                step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0
+                span = float(np.ptp(s.values))
+                for P in PERIODS_DEG:
+                    if span < 1.5 * P or step > P / 4:
+                        continue  # not a period this trace covers or resolves
+                    groups[f"{s.name}@{P:g}"] = [
+                        Column(
+                            f"{f}(2π{s.symbol}/{P:g}°)",
+                            s.name,
+                            ev(s, lambda v, r=r, P=P, fn=fn: fn(2 * np.pi * v / P)),
+                            ("period", P, f),
+                        )
+                        for f, fn in (("sin", np.sin), ("cos", np.cos))
+                    ]
+    return groups
+
+
+def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[Column]]:
+    """The distillation library of the chosen groups: each item one term (a harmonic is
+    its sine and cosine together)."""
+    items: list[list[Column]] = []
+    names = []
+    for g in chosen:
+        if g == "constant":
+            items.append([Column("1", "constant", None, ("one",))])
+            continue
+        if "*" in g:  # a carrier times another input
+            cname, _, other = g.partition("*")
+            c, o = signals[cname], signals[other]
+            r = o.ref
+            forms = [
+                (f"{c.symbol}·{o.symbol}", lambda v, r=r: v / r, ("prod", cname, other)),
+                (f"{c.symbol}·{o.symbol}²", lambda v, r=r: (v / r) ** 2, ("prod2", cname, other)),
+                (
+                    f"{c.symbol}·|{o.symbol}|",
+                    lambda v, r=r: np.abs(v) / r,
+                    ("prodabs", cname, other),
+                ),
+            ]
+            items += [[Column(lbl, g, _modulated(c, o, fn), form)] for lbl, fn, form in forms]
+            continue
+        name, _, per = g.partition("@")
+        s = signals[name]
+        r = s.ref
+        if per:
+            P = float(per)
+            for h in (1, 2):
+                items.append(
+                    [
+                        Column(
+                            f"{f}(2π{s.symbol}/{P / h:g}°)",
+                            name,
+                            ev(s, lambda v, r=r, P=P, h=h, fn=fn: fn(2 * np.pi * h * v / P)),
+                            ("period", P / h, f),
+                        )
+                        for f, fn in (("sin", np.sin), ("cos", np.cos))
+                    ]
+                )
+            continue
+        names.append(name)
+        if s.kind == "phase":
+            for k in (1, 2):
+                items.append(
+                    [
+                        Column(
+                            f"{f}({_times(k)}{s.symbol})",
+                            name,
+                            ev(s, lambda v, r=r, k=k, fn=fn: fn(k * v)),
+                            ("harm", k, f),
+                        )
+                        for f, fn in (("sin", np.sin), ("cos", np.cos))
+                    ]
+                )
+            continue
+        cand = [
+            (f"{s.symbol}", lambda v, r=r: v / r, ("pow", 1)),
+            (f"{s.symbol}²", lambda v, r=r: (v / r) ** 2, ("pow", 2)),
+            (f"{s.symbol}³", lambda v, r=r: (v / r) ** 3, ("pow", 3)),
+        ]
+        if s.kind == "signed":
+            cand += [
+                (f"{s.symbol}|{s.symbol}|", lambda v, r=r: v * np.abs(v) / r**2, ("spow", 2)),
+                (f"|{s.symbol}|", lambda v, r=r: np.abs(v) / r, ("abs",)),
+                (f"sign({s.symbol})", lambda v, r=r: np.tanh(v / r / 0.05), ("tanh", 0.05)),
+                (
+                    f"tanh({s.symbol}/{0.3 * r:.3g})",
+                    lambda v, r=r: np.tanh(v / r / 0.3),
+                    ("tanh", 0.3),
+                ),
+            ]
+        else:
+            cand += [
+                (f"√{s.symbol}", lambda v, r=r: np.sqrt(np.abs(v) / r), ("sqrt",)),
+                (
+                    f"1 − exp(−{s.symbol}/{0.3 * r:.3g})",
+                    lambda v, r=r: 1 - np.exp(-np.abs(v) / r / 0.3),
+                    ("sat", 0.3),
+                ),
+            ]
+            for k in _hinge_knots(s.values / r, (0.5,)):
+                cand.append(
+                    (
+                        f"max(0, {s.symbol} − {k * r:.3g})",
+                        lambda v, r=r, k=k: np.maximum(v / r - k, 0),
+                        ("hinge", k),
+                    )
+                )
+        items += [[Column(lbl, name, ev(s, fn), form)] for lbl, fn, form in cand]
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            sa, sb = signals[a], signals[b]
+            items.append(
+                [
+                    Column(
+                        f"{sa.symbol}·{sb.symbol}",
+                        f"{a}*{b}",
+                        ev(sa, lambda v, q=sa.ref: v / q) * ev(sb, lambda v, q=sb.ref: v / q),
+                        ("prod", a, b),
+                    )
+                ]
+            )
+    return items
+
+
+def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, str]:
+    """The expression of a basis column in physical units, the factor that turns its
+    coefficient into the expression's, and the expression's unit (``""``: none).
+
+    A column is ``f(z)`` of a normalised signal ``z = s / ref``; its coefficient times
+    ``factor`` is the coefficient of the expression in the signal's own unit."""
+    kind = col.form[0]
+    if kind == "one":
+        return "1", 1.0, ""
+    if kind == "prod":
+        a, b = signals[col.form[1]], signals[col.form[2]]
+        return f"{a.symbol}·{b.symbol}", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
+    if kind == "prod2":
+        a, b = signals[col.form[1]], signals[col.form[2]]
+        return f"{a.symbol}·{b.symbol}²", 1.0 / (a.ref * b.ref**2), f"{a.unit}*{b.unit}^2"
+    if kind == "prodabs":
+        a, b = signals[col.form[1]], signals[col.form[2]]
+        return f"{a.symbol}·|{b.symbol}|", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
+    s = signals[col.signal]
+    if kind == "pow":
+        p = col.form[1]
+        sup = {1: "", 2: "²", 3: "³"}[p]
+        return f"{s.symbol}{sup}", s.ref**-p, s.unit + ("" if p == 1 else f"^{p}")
+    if kind == "spow":
+        return f"{s.symbol}|{s.symbol}|", s.ref**-2, f"{s.unit}^2"
+    if kind == "abs":
+        return f"|{s.symbol}|", 1.0 / s.ref, s.unit
+    if kind == "sqrt":
+        return f"√{s.symbol}", s.ref**-0.5, f"{s.unit}^0.5"
+    if kind == "tanh":
+        scale = col.form[1] * s.ref
+        if col.form[1] <= 0.05:
+            return f"sign({s.symbol}) [tanh({s.symbol}/{scale:.3g} {s.unit})]", 1.0, ""
+        return f"tanh({s.symbol}/{scale:.3g} {s.unit})", 1.0, ""
+    if kind == "sat":
+        return f"(1 − exp(−|{s.symbol}|/{col.form[1] * s.ref:.3g} {s.unit}))", 1.0, ""
+    if kind == "hinge":
+        return f"max(0, {s.symbol} − {col.form[1] * s.ref:.4g} {s.unit})", 1.0 / s.ref, s.unit
+    return col.label, 1.0, ""
+
+
+def render(col: Column, coef: float, signals: Mapping[str, Signal]) -> str:
+    """One term of the equation in SI units: the physical coefficient times the
+    expression (see :func:`physical`)."""
+    expr, factor, _ = physical(col, signals)
+    return f"{coef * factor:+.4g}" if expr == "1" else f"{coef * factor:+.4g}·{expr}"
+
+
+def render_pair(cols: Sequence[Column], coefs: Sequence[float]) -> str:
+    """A sine and cosine pair as one harmonic, ``A·sin(... + phase)``."""
+    (cs, cc) = coefs
+    amp, phase = float(np.hypot(cs, cc)), float(np.arctan2(cc, cs))
+    arg = cols[0].label[4:-1]
+    return f"{amp:+.4g}·sin({arg} {phase:+.2f})"
