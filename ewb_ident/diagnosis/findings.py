@@ -287,4 +287,14 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
         terms=tuple(terms),
         reading=hyp,
         term_series=basis_matrix(disc, ses.trace.n) @ np.asarray(coef, float),
+        **_main_input(disc),
     )
+
+
+def _main_input(disc: Discovery) -> dict[str, Any]:
+    """The signal a discovered term depends on first, for its figure."""
+    for name in disc.depends_on:
+        sig = disc.signals.get(name)
+        if sig is not None:
+            return {"term_input": sig.values, "term_input_label": f"{sig.words}, {sig.unit}"}
+    return {}

@@ -92,8 +92,11 @@ class Finding:
     heldout: dict[str, Any] = field(default_factory=dict)
     terms: tuple[dict[str, Any], ...] = ()
     reading: str = ""
-    #: The discovered term per sample, in the place's unit (for figures; not in JSON).
+    #: The discovered term per sample, in the place's unit, and its main input with
+    #: that input's label (for figures; not in JSON).
     term_series: np.ndarray | None = field(default=None, repr=False, compare=False)
+    term_input: np.ndarray | None = field(default=None, repr=False, compare=False)
+    term_input_label: str = ""
 
     def to_json(self) -> dict[str, Any]:
         out = {

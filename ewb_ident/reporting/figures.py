@@ -8,7 +8,9 @@ returns the figure and leaves global matplotlib state alone (no pyplot). The set
     Residual over its noise floor, stage by stage, before (grey) and after (colour) the
     findings were added, with the phases of the brake application shaded.
 ``finding_<k>_<effect>.png``
-    For each finding, the view an engineer would check: displacement against angle
+    For each finding, the view an engineer would check: a discovered term against the
+    signal it depends on (with the data's partial residuals where it adds to the
+    output), displacement against angle
     (gap stage), force against displacement (force stage), apparent friction
     coefficient against disc speed or dissipated energy (torque stage), or the channels
     against time (motor and sensor mechanisms); model before and after, and the
@@ -40,6 +42,7 @@ from ewb_ident.reporting.style import (
 
 if TYPE_CHECKING:
     from ewb_ident.diagnosis.result import DiagnosisResult, Finding
+
 
 def mismatch_figure(result: DiagnosisResult) -> Figure:
     """Normalised residuals per stage before and after, phases shaded."""
@@ -104,7 +107,9 @@ def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
     before = result.checks_before.get((stage, ch))
     after = result.checks_after.get((stage, ch))
     drawn = False
-    if before is not None and after is not None:
+    if finding.place and finding.term_series is not None and finding.term_input is not None:
+        drawn = _learned_view(top, finding, after)
+    if not drawn and before is not None and after is not None:
         view = _VIEWS.get(finding.effect) or _VIEWS.get(stage)
         if view is not None:
             drawn = view(top, tr, before, after)
@@ -130,6 +135,33 @@ def finding_figure(result: DiagnosisResult, finding: Finding) -> Figure:
     fig.suptitle(title, fontsize=8)
     fixed_margins(fig, top=0.25 + 0.14 * (title.count("\n") + 1), gap=0.65)
     return fig
+
+
+#: Places where a term adds to the stage's output channel, so that the residual plus
+#: the term is the data's view of it (its partial residual).
+_ADDITIVE = ("drive", "force.output", "torque.output", "sensor.")
+
+
+def _learned_view(ax, finding: Finding, after) -> bool:
+    """A discovered term against the signal it depends on first; where the term adds to
+    the stage's output, the data's partial residuals (the residual with the term on,
+    plus the term) beside it."""
+    x, y = finding.term_input, finding.term_series
+    additive = (
+        finding.place.startswith(_ADDITIVE)
+        and (not finding.place.startswith("sensor.") or finding.place.endswith(after.channel))
+        if after is not None
+        else False
+    )
+    if additive:
+        part = after.residual + y
+        ax.plot(x, part, ".", ms=1.5, color="0.6", label="data: residual + learned term")
+    order = np.argsort(x, kind="stable")
+    ax.plot(x[order], y[order], ".", ms=2.5, color="C1", label=f"learned term at {finding.place}")
+    ax.set_xlabel(finding.term_input_label)
+    ax.set_ylabel(finding.equation.split(" = ")[0] + f" [{finding.units.get('c0', '')}]")
+    ax.legend(fontsize=8)
+    return True
 
 
 def _finding_channel(finding: Finding) -> str:
