@@ -374,14 +374,22 @@ def figures(out: Path) -> None:
         z = np.load(out / "terms" / f"case{int(sel[0]['case']):03d}.npz", allow_pickle=False)
         fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
         t = z["t"]
-        axes[0].plot(t, z["truth"], lw=1.2, label=f"planted ({z['truth_place']})")
-        axes[0].plot(t, z["learned"], lw=1.0, ls="--", label=f"learned ({z['place']})")
+        same = str(z["place"]) == str(z["truth_place"])
+        ax_t = axes[0] if same else axes[0].twinx()
+        ax_x = axes[1] if same else axes[1].twinx()
+        axes[0].plot(t, z["truth"], lw=1.2, color="C0", label=f"planted ({z['truth_place']})")
+        ax_t.plot(t, z["learned"], lw=1.0, ls="--", color="C1", label=f"learned ({z['place']})")
         axes[0].set_xlabel("time, s")
-        axes[0].legend(fontsize=7)
-        axes[1].plot(z["input"], z["truth"], ".", ms=2, label="planted")
-        axes[1].plot(z["input"], z["learned"], ".", ms=2, label="learned")
+        axes[1].plot(z["input"], z["truth"], ".", ms=2, color="C0", label="planted")
+        ax_x.plot(z["input"], z["learned"], ".", ms=2, color="C1", label="learned")
         axes[1].set_xlabel(str(z["input_name"]))
-        axes[1].legend(fontsize=7)
+        if not same:  # another place: another quantity, on its own axis
+            for ax in (ax_t, ax_x):
+                ax.set_ylabel(f"learned at {z['place']}", color="C1", fontsize=7)
+            for ax in axes:
+                ax.set_ylabel(f"planted at {z['truth_place']}", color="C0", fontsize=7)
+        for ax in (axes[0], ax_t):
+            ax.legend(fontsize=7, loc="upper left" if ax is axes[0] else "upper right")
         fig.suptitle(f"{fam} (case {sel[0]['case']}): {z['equation']}", fontsize=8)
         fig.tight_layout()
         fig.savefig(out / f"term_{fam}.png", dpi=90)

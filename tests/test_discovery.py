@@ -141,3 +141,14 @@ def test_a_mains_hum_alone_is_an_artefact_and_the_verdict_none(rate, freq, amp):
     assert "mains" in art.summary
     doc = json.loads(json_text(res.to_json()))
     assert doc["artefacts"][0]["channel"] == "force_N"
+
+
+def test_a_discovered_term_is_drawn_against_what_it_depends_on():
+    from ewb_ident.reporting.figures import figure_bytes
+
+    res = damped_diagnosis()
+    top = res.findings[0]
+    assert top.term_input is not None and "piston speed" in top.term_input_label
+    pngs = figure_bytes(res)
+    name = f"finding_1_{top.effect}.png"
+    assert name in pngs and pngs[name][:8] == b"\x89PNG\r\n\x1a\n"
