@@ -7,8 +7,9 @@ Traces (3 s, written by ``studies/uncatalogued_rig.py``, independent of the tool
 
 * ``damping``: caliper damping (a force term depending on the piston speed), 200 Hz,
   closed-loop, every channel: discovery at the force stage;
-* ``brush``: a brush voltage drop (a motor voltage term depending on the current's
-  sign), 200 Hz, open-loop steps: discovery inside the motor's integration;
+* ``brush``: a brush voltage drop (a motor voltage term depending on the current), 500
+  Hz, open-loop steps (case 7 of the discovery study's seed 20261301): discovery inside
+  the motor's integration;
 * the peer: ``datasets/concealed/backlash.csv`` (3 s, 200 Hz; a catalog mechanism).
 
 Each command is ``ewb-ident diagnose TRACE --out DIR`` in a fresh process with
@@ -43,15 +44,12 @@ PEER = ROOT / "datasets" / "concealed" / "backlash.csv"
 def traces(folder: Path) -> dict[str, Path]:
     """The benchmark's traces, written to ``folder``."""
     out = {}
-    spec = {
-        "damping": ("caliper_damping", "a", "pi"),
-        "brush": ("brush_drop", "a", "steps"),
-    }
-    for name, (fam, form, profile) in spec.items():
-        case = ur.make_case(
-            fam, form, 7, 0, rate_hz=200, profile=profile, has_current=True, duration_s=3.0
-        )
-        out[name] = ur.write_case(case, folder, name)
+    damping = ur.make_case(
+        "caliper_damping", "a", 7, 0, rate_hz=200, profile="pi", has_current=True, duration_s=3.0
+    )
+    out["damping"] = ur.write_case(damping, folder, "damping")
+    # Case 7 of the discovery study's seed: a located motor (500 Hz, steps, current).
+    out["brush"] = ur.write_case(ur.make_case("brush_drop", "b", 20261301, 7), folder, "brush")
     out["peer (catalog)"] = PEER
     return out
 
