@@ -152,3 +152,23 @@ def test_a_discovered_term_is_drawn_against_what_it_depends_on():
     pngs = figure_bytes(res)
     name = f"finding_1_{top.effect}.png"
     assert name in pngs and pngs[name][:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_fit_with_a_diagnosis_of_learned_terms_says_so(tmp_path):
+    """The corrected fit takes catalog mechanisms; a diagnosis whose findings are learned
+    terms is refused in one line that says where the refitted chain is (exit 2)."""
+    from typer.testing import CliRunner
+
+    from ewb_ident.cli import app
+
+    (tmp_path / "diagnosis.json").write_text(json_text(damped_diagnosis().to_json()))
+    trace = tmp_path / "t.csv"
+    from ewb_ident.data.writers import write_trace
+
+    write_trace(damped_force_trace(), trace)
+    out = CliRunner().invoke(
+        app, ["fit", str(trace), "--with-diagnosis", str(tmp_path), "--out", str(tmp_path / "f")]
+    )
+    assert out.exit_code == 2
+    assert "learned terms" in out.output and "'augmented' block" in out.output
+    assert not (tmp_path / "f").exists()

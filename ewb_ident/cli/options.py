@@ -206,6 +206,14 @@ def mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str
         except (OSError, ValueError, KeyError, TypeError) as err:
             fail(f"--with-diagnosis {with_diagnosis}: cannot read diagnosis.json ({err})")
         found = [m for m in found if not m.startswith("unexplained_")]
+        learned = [f.get("place") for f in doc.get("findings", []) if f.get("place")]
+        if not found and learned:
+            fail(
+                f"--with-diagnosis {with_diagnosis}: its findings are learned terms (at "
+                f"{', '.join(learned)}), not catalog mechanisms; the corrected fit takes "
+                "catalog mechanisms only: the whole chain refitted with the learned terms is "
+                "in that diagnosis.json's 'augmented' block"
+            )
         if not found:
             fail(
                 f"--with-diagnosis {with_diagnosis}: the diagnosis found no catalog mechanism "
