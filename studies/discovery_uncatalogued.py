@@ -51,6 +51,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import uncatalogued_rig as ur  # noqa: E402
+from diagnosis_accuracy import _read  # noqa: E402
 
 ROOT = HERE.parent
 OUT = ROOT / "out" / "discovery_uncatalogued"
@@ -225,13 +226,6 @@ def run_case(i: int, fam: str, form: str, nuisance: str | None, seed: int, out: 
         inside += int(abs(v - rig[name]) <= 1.645 * se)
     row["abcmu_in"], row["abcmu_checked"] = inside, checked
     return row
-
-
-def _read(path: Path) -> list[dict[str, str]]:
-    if not path.exists():
-        return []
-    with path.open(newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 def _rows(out: Path) -> list[dict[str, str]]:

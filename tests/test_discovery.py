@@ -113,8 +113,7 @@ def test_the_heldout_check_refuses_a_term_that_only_fits_noise():
     cols = [inputs.Column(f"z{j}", f"s{j}", None) for j in range(60)]
     G = rng.standard_normal((n, 60))
     G /= np.linalg.norm(G, axis=0)
-    d = heldout.Design(rng.standard_normal(n), np.ones((n, 1)), fold, cols, G, float(n), 4,
-                        0.0, np.ones(60))  # fmt: skip
+    d = heldout.Design(rng.standard_normal(n), np.ones((n, 1)), fold, G, float(n), 0.0, np.ones(60))
     groups = {f"g{k}": cols[6 * k : 6 * k + 6] for k in range(10)}
     before, _ = d.insample([], 0.0)
     after, _ = d.insample(list(range(60)), 0.0)

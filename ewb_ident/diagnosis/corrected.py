@@ -30,7 +30,7 @@ from ewb_ident.model.numerics import numerics
 
 def corrected_of(trace: Trace, chain_fits, data, sigma) -> CorrectedFit | None:
     """The diagnosis's corrected whole chain as a :class:`CorrectedFit` (catalog
-    mechanisms only: a generic correction has no physical parameters to sample)."""
+    mechanisms only: a discovered term has no physical parameters to sample)."""
     catalog = {m.variant for m in variants()}
     f0, f1 = chain_fits[0], chain_fits[-1]
     if not f1.mechanisms or any(m.variant not in catalog for m in f1.mechanisms):

@@ -28,17 +28,18 @@ Steps (:func:`diagnose`)
      excludes "no effect" (guard against reporting an unresolved value), and
    - it removes at least ``MIN_EXPLAINED`` (half) of the excess of the residual over the
      noise at its stages (guard against a catalog name absorbing part of some other
-     physics), or at least ``CATALOG_SHARE`` of what the generic correction of step 4
+     physics), or at least ``CATALOG_SHARE`` of what the learned term of step 4
      removes there (the excess can hold what no smooth term removes, e.g. noise on a
      measured input bent by a nonlinear stage).
 
    Forward selection: the supported mechanism with the lowest ``dBIC`` is added, the
    remaining candidates are refitted on top of it, and so on while a stage is still
    located (at most :data:`MAX_MECHANISMS`).
-4. **Unknown physics.** A stage still located afterwards gets a sparse generic
-   correction (:mod:`ewb_ident.diagnosis.correction`), reported as
-   ``unexplained_<stage>`` with the terms it depends on. With no catalog finding the
-   verdict is ``unexplained``.
+4. **Unknown physics.** Catalog names at a stage are first checked against a learned
+   term there on held-out data; a stage still located afterwards goes to discovery
+   (:mod:`ewb_ident.diagnosis.discovery`): a learned term where it acts, kept only if it
+   generalises, distilled to an equation, reported as ``learned_<place>``. With no
+   catalog finding the verdict is ``unexplained``.
 5. **Show it.** The whole chain is refitted with the selected mechanisms, one added at a
    time, for metrics before and after each; words for each finding.
 
@@ -648,14 +649,14 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     nonlinear stage's output, a bias no mechanism should take the blame for). A catalog
     mechanism the chain did not confirm is tried again on top of those confirmed after
     it (two effects can each show in the chain only once the other is modelled: a
-    backlash under a hysteresis loop), before the generic corrections. Returns the
+    backlash under a hysteresis loop), before the learned terms. Returns the
     findings kept, the chain evidence of each, and those the chain did not confirm.
     """
     catalog = list(work.selected)
-    generic = [term for _, _, _, term in work.discoveries]
+    learned = [term for _, _, _, term in work.discoveries]
     chain_ev: dict[str, dict[str, float]] = {}
     if not chain.ok:
-        return catalog + generic, chain_ev, []
+        return catalog + learned, chain_ev, []
     kept: list[AbstractMechanism] = []
     last: dict[str, tuple[AbstractMechanism, dict[str, float]]] = {}
 
@@ -689,10 +690,10 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
         if len(failed) == len(pending):
             break
         pending = failed
-    if generic:
+    if learned:
         # The learned terms' basis series, for the chain's model.
         chain.data = learned_data(chain.data, [d for d, _, _, _ in work.discoveries])
-    for m in generic:
+    for m in learned:
         confirmed(m)
     return kept, chain_ev, list(last.values())
 

@@ -46,7 +46,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.linalg import expm
 from scipy.signal import fftconvolve
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
@@ -55,10 +54,10 @@ from ewb_ident.diagnosis.heldout import (
     RIDGES,
     Design,
     folds,
+    lag1,
     white_level,
 )
 from ewb_ident.diagnosis.inputs import (
-    OWN_SIGNAL,
     Column,
     Signal,
     carriers_of,
@@ -69,9 +68,11 @@ from ewb_ident.diagnosis.inputs import (
     motor_fine,
     render,
     render_pair,
+    sensor_signal,
 )
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
-from ewb_ident.model.physics import DEG_PER_RAD
+from ewb_ident.model.integrate import zoh_map
+from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 #: ... a learned term must also remove at least this share of the held-out excess over
 #: the noise (beside a held-out score of at most ``-HELDOUT_BIC``).
@@ -111,13 +112,9 @@ def motor_response(values: Mapping[str, float], dt: float, n: int) -> np.ndarray
     """Impulse responses of the motor (current A, angle deg) to a voltage (column 0) and
     to a load torque (column 1) held over one sample: ``h[k, out, inp]`` is the output
     at sample ``k`` after a unit input over sample 0 (the outputs lag by one sample)."""
-    R, L, kb, kT, M, v = (float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v"))
-    A = np.array([[-R / L, -kb / L, 0.0], [kT / M, -v / M, 0.0], [0.0, 1.0, 0.0]])
-    B = np.array([[1.0 / L, 0.0], [0.0, -1.0 / M], [0.0, 0.0]])
-    aug = np.zeros((5, 5))
-    aug[:3, :3], aug[:3, 3:] = A * dt, B * dt
-    E = expm(aug)
-    Ad, Bd = E[:3, :3], E[:3, 3:]
+    A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
+    Ad, b_V = (np.asarray(z) for z in zoh_map(A, B_V, dt))
+    Bd = np.stack([b_V, np.asarray(zoh_map(A, B_tau, dt)[1])], axis=1)
     h = np.zeros((n, 2, 2))
     x = Bd.copy()
     for k in range(1, n):
@@ -136,9 +133,7 @@ def _bell_slope(x, values) -> np.ndarray:
     return F_rt * (2 * b * q / u) * np.sign(c - x) / a / (1 + q) ** 2
 
 
-def place_effect(
-    place: str, values: Mapping[str, float], trace, model: Mapping[str, np.ndarray]
-) -> dict[str, Any]:
+def place_effect(place: str, values: Mapping[str, float], trace) -> dict[str, Any]:
     """How a term at ``place`` changes each predicted channel, per stage.
 
     Returns ``{channel: op}`` where ``op(U)`` maps the term's basis columns ``U`` (n, K)
@@ -317,15 +312,15 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     r, J = np.asarray(r, float), np.asarray(J, float)
     chans = fit.problem.channels
     n_pad = r.size // len(chans)
-    model = model_channels(ses, fit)
-    effect = place_effect(place, fit.values, ses.trace, model)
+    effect = place_effect(place, fit.values, ses.trace)
     if not set(effect) & set(chans):
         return None
     cols = [c for g in groups.values() for c in g]
     U = np.stack([np.ones(n) if c.values is None else c.values for c in cols], axis=1)
+    weights = {ch: np.asarray(ses.data["w"][ch], float)[:n_pad] for ch in chans}
     blocks = []
     for ch in chans:
-        w = np.asarray(ses.data["w"][ch], float)[:n_pad]
+        w = weights[ch]
         B = np.zeros((n_pad, U.shape[1]))
         if ch in effect:
             B[:n] = effect[ch](U) * w[:n, None]
@@ -342,15 +337,11 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
         orth = np.linalg.norm(G - Uj @ (Uj.T @ G), axis=0)
         G[:, orth < MIN_NEW_SHARE] = 0.0
     fold_rows = np.concatenate([np.r_[fold, -np.ones(n_pad - n, int)]] * len(chans))
-    fold_rows = np.where(
-        np.concatenate([np.asarray(ses.data["w"][c])[:n_pad] for c in chans]) > 0, fold_rows, -1
-    )
-    e = r[fold_rows >= 0]
-    ee = e - np.mean(e)
-    rho = float(np.clip(ee[1:] @ ee[:-1] / max(ee @ ee, 1e-300), 0.0, 0.98))
+    fold_rows = np.where(np.concatenate([weights[c] for c in chans]) > 0, fold_rows, -1)
+    rho = lag1(r[fold_rows >= 0])
     noise_rows = float(np.count_nonzero(fold_rows >= 0)) * white_level(r, fold_rows) ** 2
     own = np.concatenate([np.full(n_pad, ch in STAGE_OUTPUTS[stage]) for ch in chans])
-    return Design(r, J, fold_rows, cols, G, noise_rows, int(fold.max()) + 1, rho, norms, own)
+    return Design(r, J, fold_rows, G, noise_rows, rho, norms, own)
 
 
 def _column_index(d: Design, groups: Mapping[str, list[Column]], names) -> list[int]:
@@ -388,10 +379,8 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
     chosen: list[str] = []
     cur = base_ho
     usable = [g for g in groups if _column_index(d, groups, {g})]
-    local = LOCAL.get(place.split(".")[0] if place.startswith("sensor.") else place, ())
-    if place.startswith("sensor."):
-        own = OWN_SIGNAL.get(place.split(".", 1)[1], "")
-        local = (own, f"{own}_rate")
+    own = sensor_signal(place)
+    local = (own, f"{own}_rate") if own else LOCAL.get(place, ())
     for _ in range(MAX_INPUTS):
         tried = []
         for g in usable:
@@ -485,7 +474,7 @@ def _item_cols(items, chosen) -> list[int]:
     return [int(offs[j]) + i for j in chosen for i in range(len(items[j]))]
 
 
-def discover(ses, stage: str, fits_of, *, margin_places: float = HELDOUT_BIC) -> Discovery | None:
+def discover(ses, stage: str, fits_of) -> Discovery | None:
     """Learn the missing term at every place of ``stage``, keep the best on held-out data,
     and distil it.
 
@@ -514,7 +503,7 @@ def discover(ses, stage: str, fits_of, *, margin_places: float = HELDOUT_BIC) ->
         fit = fits_of(stages)
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
         sig = input_signals(trace, model_channels(ses, fit), fine)
-        groups = learned_groups(sig, trace.dt, carriers_of(place))
+        groups = learned_groups(sig, carriers_of(place))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue
@@ -686,7 +675,7 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
 def reading(place: str, depends_on: Sequence[str]) -> str:
     """A physical reading of a learned term from :data:`SIGNATURES` (a hypothesis), or
     ``""`` when no known signature matches."""
-    own = OWN_SIGNAL.get(place.split(".", 1)[1], "") if place.startswith("sensor.") else ""
+    own = sensor_signal(place)
     for pre, inp, words in SIGNATURES:
         if not place.startswith(pre):
             continue

@@ -10,8 +10,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ewb_ident.diagnosis.inputs import Column
-
 #: A learned term must lower the held-out residual by this much (a dBIC-like score of
 #: the held-out residual sums, with the effective number of residuals, no penalty).
 HELDOUT_BIC = 10.0
@@ -58,10 +56,8 @@ class Design:
     r: np.ndarray
     J: np.ndarray
     fold: np.ndarray
-    cols: list[Column]
     G: np.ndarray
     noise_rows: float
-    n_folds: int
     rho: float
     norms: np.ndarray
     #: Rows of the located stage's channels (a sensor's term also shows downstream).
@@ -70,8 +66,12 @@ class Design:
         default_factory=list, repr=False
     )
 
+    @property
+    def n_folds(self) -> int:
+        return int(self.fold.max()) + 1
+
     def __post_init__(self):
-        A = np.concatenate([self.J, self.G], axis=1)
+        A = self._A = np.concatenate([self.J, self.G], axis=1)
         own = np.ones(self.r.size, bool) if self.stage_rows is None else self.stage_rows
         self._stage_grams = []
         for k in range(self.n_folds):
@@ -87,6 +87,10 @@ class Design:
     @property
     def kb(self) -> int:
         return self.J.shape[1]
+
+    def _index(self, terms: Sequence[int]) -> np.ndarray:
+        """Columns of the stage's parameters and of the term columns ``terms``."""
+        return np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
 
     def _solve(self, M, b, idx, lam):
         Mi = M[np.ix_(idx, idx)]
@@ -107,7 +111,7 @@ class Design:
 
     def heldout_folds(self, terms: Sequence[int], lam: float, stage: bool = False) -> np.ndarray:
         """:meth:`heldout` fold by fold."""
-        idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
+        idx = self._index(terms)
         total = []
         for (Mt, bt, Me, be, ee), (Ms, bs, es) in zip(self._grams, self._stage_grams, strict=True):
             x = self._solve(Mt, bt, idx, lam)
@@ -126,7 +130,7 @@ class Design:
     def insample(self, terms: Sequence[int], lam: float) -> tuple[float, np.ndarray]:
         """In-sample RSS and the coefficients (stage parameters first) on all rows."""
         M, b, ee = self._full
-        idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
+        idx = self._index(terms)
         x = self._solve(M, b, idx, lam)
         return float(ee + 2 * x @ b[idx] + x @ M[np.ix_(idx, idx)] @ x), x
 
@@ -150,11 +154,7 @@ class Design:
         """Lag-1 autocorrelation of the residual with the term columns ``terms`` fitted
         (clipped to [0, 0.98]): what remains serially correlated after the term."""
         _, x = self.insample(terms, lam)
-        idx = np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
-        A = np.concatenate([self.J, self.G], axis=1)[:, idx]
-        e = (self.r + A @ x)[self.fold >= 0]
-        e = e - np.mean(e)
-        return float(np.clip(e[1:] @ e[:-1] / max(e @ e, 1e-300), 0.0, 0.98))
+        return lag1((self.r + self._A[:, self._index(terms)] @ x)[self.fold >= 0])
 
     def score(self, before: float, after: float, rho: float | None = None) -> float:
         """dBIC-like score of a held-out change (negative: better), with the effective
@@ -163,6 +163,12 @@ class Design:
         rho = min(self.rho if rho is None else rho, RHO_CAP)
         n = float(np.count_nonzero(self.fold >= 0)) * (1 - rho) / (1 + rho)
         return n * float(np.log(max(after, 1e-300) / max(before, 1e-300)))
+
+
+def lag1(e: np.ndarray) -> float:
+    """Lag-1 autocorrelation of a residual about its mean, clipped to [0, 0.98]."""
+    e = e - np.mean(e)
+    return float(np.clip(e[1:] @ e[:-1] / max(e @ e, 1e-300), 0.0, 0.98))
 
 
 def white_level(r: np.ndarray, fold_rows: np.ndarray) -> float:

@@ -11,11 +11,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import expm
 
-from ewb_ident.data.metrics import smooth
 from ewb_ident.data.stages import STAGE_OUTPUTS
-from ewb_ident.model.physics import DEG_PER_RAD
+from ewb_ident.diagnosis.locate import disc_angle
+from ewb_ident.model.integrate import zoh_map
+from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 #: Candidate periods of a term periodic in the pinion angle, degrees.
 PERIODS_DEG = (360.0, 180.0, 120.0, 90.0, 72.0, 60.0, 45.0, 40.0, 36.0, 30.0, 24.0, 20.0)
@@ -56,10 +56,6 @@ class Signal:
     fine: np.ndarray | None = field(default=None, repr=False)
 
 
-def _rate(y: np.ndarray, dt: float, width: int) -> np.ndarray:
-    return np.gradient(smooth(y, width), dt)
-
-
 def _lowpass(y: np.ndarray, dt: float, tau: float) -> np.ndarray:
     a = float(np.exp(-dt / tau))
     from scipy.signal import lfilter
@@ -98,12 +94,8 @@ def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
     are the motor stage's own prediction."""
     dt, n = trace.dt, trace.n
     m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
-    R, L, kb, kT, M, v = (float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v"))
-    A = np.array([[-R / L, -kb / L, 0.0], [kT / M, -v / M, 0.0], [0.0, 1.0, 0.0]])
-    aug = np.zeros((4, 4))
-    aug[:3, :3], aug[0, 3] = A * (dt / m), dt / m / L
-    E = expm(aug)
-    Ad, bd = E[:3, :3], E[:3, 3]
+    A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
+    Ad, bd = (np.asarray(z) for z in zoh_map(A, B_V, dt / m))
     V = trace["voltage_V"]
     # The flow over a whole sample, then each sub-step from the sample's start state.
     Am = np.linalg.matrix_power(Ad, m)
@@ -147,7 +139,6 @@ def input_signals(
     """
     dt, n = trace.dt, trace.n
     half = max(1, round(0.005 / dt))
-    width = 1
     out: dict[str, Signal] = {}
 
     def add(name, values, unit, kind, words, symbol):
@@ -165,10 +156,10 @@ def input_signals(
 
     def channel(ch):
         if ch in model:
-            return np.asarray(model[ch], float)[:n], True
+            return np.asarray(model[ch], float)[:n]
         if trace.has(ch):
-            return leave_one_out(trace[ch], half), False
-        return None, False
+            return leave_one_out(trace[ch], half)
+        return None
 
     t = trace.time_s - trace.time_s[0]
     add("time", t, "s", "level", "elapsed time", "t")
@@ -176,12 +167,12 @@ def input_signals(
         V = trace["voltage_V"]
         add("voltage", V, "V", "signed", "the motor voltage", "V")
         add("voltage_rate", np.gradient(V, dt), "V/s", "signed", "the voltage's rate", "dV/dt")
-    th, th_model = channel("theta_deg")
+    th = channel("theta_deg")
     if th is not None:
-        omega = _rate(th, dt, width) / DEG_PER_RAD
+        omega = np.gradient(th, dt) / DEG_PER_RAD
         add("angle", th, "deg", "angle", "the pinion angle", "θ")
         add("speed", omega, "rad/s", "signed", "the motor speed", "ω")
-    cur, _ = channel("current_A")
+    cur = channel("current_A")
     if fine is not None and "current" in fine:
         cur = np.asarray(fine["current"])[:, 0]
     if cur is not None:
@@ -199,11 +190,11 @@ def input_signals(
         ("torque_Nm", "torque", "N*m", "the brake torque", "T", "the rate of the brake torque"),
     )
     for ch, name, unit, words, sym, rate_words in levels:
-        y, modelled = channel(ch)
+        y = channel(ch)
         if y is None:
             continue
         add(name, y, unit, "level", words, sym)
-        rate = _rate(y, dt, 1 if modelled else width)
+        rate = np.gradient(y, dt)
         add(f"{name}_rate", rate, f"{unit}/s", "signed", rate_words, f"d{sym}/dt")
         if name != "force":
             continue
@@ -219,7 +210,7 @@ def input_signals(
         )
         add(
             "disc_angle",
-            np.mod(_integral(wd, dt), 2 * np.pi),
+            np.mod(disc_angle(trace), 2 * np.pi),
             "rad",
             "phase",
             "the disc angle",
@@ -334,10 +325,16 @@ CARRIERS: dict[str, tuple[str, ...]] = {
 }
 
 
+def sensor_signal(place: str) -> str:
+    """The signal a sensor place reads (``"force"`` for ``sensor.force_N``), ``""`` for a
+    place that is not a sensor's."""
+    return OWN_SIGNAL.get(place.split(".", 1)[1], "") if place.startswith("sensor.") else ""
+
+
 def carriers_of(place: str) -> tuple[str, ...]:
-    """The carriers of a place (a sensor's: its own channel)."""
+    """The carriers of a place (a sensor's: its own signal)."""
     if place.startswith("sensor."):
-        own = OWN_SIGNAL.get(place.split(".", 1)[1], "")
+        own = sensor_signal(place)
         return (own,) if own else ()
     return CARRIERS.get(place, ())
 
@@ -351,7 +348,7 @@ def _modulated(c: Signal, s: Signal, fn) -> np.ndarray:
 
 
 def learned_groups(
-    signals: Mapping[str, Signal], dt: float, carriers: Sequence[str] = ()
+    signals: Mapping[str, Signal], carriers: Sequence[str] = ()
 ) -> dict[str, list[Column]]:
     """The flexible basis of the learned function, one group of columns per input (and
     per candidate period of the angle), and per carrier times each other input."""

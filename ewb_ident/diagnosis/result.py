@@ -149,7 +149,7 @@ class DiagnosisResult:
     cells
         Every scored cell of the baseline (flagged or not).
     findings
-        Explanations, best supported first (catalog ones, then generic corrections).
+        Explanations, best supported first (catalog ones, then discovered terms).
     candidates
         Every mechanism fitted, with its evidence and why it was or was not selected.
     baseline_metrics, augmented_metrics
@@ -168,7 +168,7 @@ class DiagnosisResult:
         Seconds spent per step.
     corrected
         The whole chain fitted with the catalog findings on (``None`` when nothing in
-        the catalog was found or a generic correction is among them): where the
+        the catalog was found or a discovered term is among them): where the
         corrected model's posterior starts.
     """
 

@@ -37,9 +37,9 @@ Hooks
                           sensor reports a true series, and the best estimate of the true
                           series from a reading (for teacher-forced inputs).
 ``load_torque``           ``tau = load_torque(s, p, force)``: a smooth signed load torque,
-                          N*m (motor stage; explicit). Used by the generic correction.
+                          N*m (motor stage; explicit).
 ``output``                ``dy = correction(signals)``: an additive correction of a
-                          stage's output. Used by the generic correction.
+                          stage's output (a learned term's).
 ``voltage_series``        ``dV = voltage_series(ctx)``: a voltage added to the logged one
                           per sample (zero-order hold), V (motor stage; a learned term's
                           exogenous series).
@@ -122,8 +122,8 @@ class AbstractMechanism(eqx.Module):
     # ------------------------------------------------------------------ declarations
 
     def uses(self, hook: str) -> bool:
-        """Whether the mechanism acts through ``hook`` (an instance's: a generic
-        correction's hook depends on its stage)."""
+        """Whether the mechanism acts through ``hook`` (an instance's: a learned
+        term's hook depends on its place)."""
         return hook == self.hook or hook in self.EXTRA_HOOKS
 
     def param_info(self) -> tuple[ParamInfo, ...]:

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE
+from ewb_ident.data.trace import COLUMNS
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import ParamInfo
 
@@ -58,16 +59,9 @@ PLACES: dict[str, Place] = {
     ),
     "torque.output": Place("torque", "output", "N*m", "ΔT", "a brake torque added"),
 }
-SENSOR_UNITS = {
-    "theta_deg": "deg",
-    "x_m": "m",
-    "force_N": "N",
-    "torque_Nm": "N*m",
-    "current_A": "A",
-}
-for _ch, _unit in SENSOR_UNITS.items():
+for _ch, _stage in CHANNEL_STAGE.items():
     PLACES[f"sensor.{_ch}"] = Place(
-        CHANNEL_STAGE[_ch], "sensor", _unit, f"Δ{_ch}", f"an error of the {_ch} sensor's reading"
+        _stage, "sensor", COLUMNS[_ch], f"Δ{_ch}", f"an error of the {_ch} sensor's reading"
     )
 
 

@@ -49,7 +49,6 @@ FRICTION_NEWTON_STEPS = 3
 MOTOR_HOOKS: tuple[str, ...] = ("voltage", "motor_friction", "load_torque")
 
 
-
 def n_substeps(dt: float, mechanisms: Sequence[AbstractMechanism]) -> int:
     """Motor sub-steps per sample interval ``dt`` (s) for these mechanisms."""
     if not any(m.uses(h) for m in mechanisms for h in MOTOR_HOOKS):
@@ -161,8 +160,6 @@ def _context(d: Mapping[str, Any]) -> dict[str, Any]:
     ctx: dict[str, Any] = {
         "dt": d["dt"],
         "t": d.get("t"),
-        "scales": d.get("scales", {}),
-        "data_signals": d.get("signals", {}),
         # Basis series of learned terms, by place (``ewb_ident.diagnosis.discovery``).
         "learned": d.get("learned", {}),
     }
@@ -339,8 +336,8 @@ def _torque(F, p, mechanisms, d, ctx) -> jnp.ndarray:
 
 
 def _correct(stage: str, y, mechanisms, signals) -> jnp.ndarray:
-    """Add the ``output`` corrections of ``stage`` (generic corrections) to ``y``."""
+    """Add the ``output`` corrections of ``stage`` (learned terms) to ``y``."""
     for m in mechanisms:
         if m.uses("output") and m.stage == stage:
-            y = y + m.correction(signals | {"y": y, "scales": signals.get("scales", {})})
+            y = y + m.correction(signals | {"y": y})
     return y
