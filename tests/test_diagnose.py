@@ -192,8 +192,8 @@ def test_a_drifting_sensor_zero_is_named_alone_in_its_flexible_form(tmp_path):
     doc = res.to_json()
     assert doc["findings"][0]["form"] == "drift"
     (tmp_path / "diagnosis.json").write_text(json_text(doc))
-    names = mechanism_option(None, tmp_path)
-    assert names == ["sensor_offset[force_N]:drift"]
+    names, learned = mechanism_option(None, tmp_path)
+    assert names == ["sensor_offset[force_N]:drift"] and learned == []
     corrected = fit_corrected(trace, names)
     drift = corrected.params["sensor_offset[force_N].drift_per_s"]
     assert drift == pytest.approx(-25.0, rel=0.1)

@@ -61,7 +61,7 @@ def fit(
     mechanisms = mechanism_option(with_, with_diagnosis)
     if mechanisms is not None:
         corrected_options(traces, stage, free, per_trace, fix, integrator)
-        _fit_corrected(traces[0], out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
+        _fit_corrected(traces[0], out, *mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
         return
     from ewb_ident.data.outputs import write_json
     from ewb_ident.inference.least_squares import fit as run_fit
@@ -91,7 +91,9 @@ def fit(
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
-def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_eff) -> None:
+def _fit_corrected(
+    trace, out, mechanisms, learned, mapping, fill_gaps, no_unit_check, r_eff
+) -> None:
     from ewb_ident.data.outputs import write_json
     from ewb_ident.diagnosis.corrected import fit_corrected
     from ewb_ident.diagnosis.session import DiagnoseError
@@ -99,7 +101,7 @@ def _fit_corrected(trace, out, mechanisms, mapping, fill_gaps, no_unit_check, r_
 
     try:
         (tr,) = read_traces([trace], ("chain",), mapping, fill_gaps, no_unit_check, r_eff)
-        result = fit_corrected(tr, mechanisms)
+        result = fit_corrected(tr, mechanisms, learned)
     except (*bad_input_errors(), DiagnoseError) as err:
         fail(str(err))
     out.mkdir(parents=True, exist_ok=True)

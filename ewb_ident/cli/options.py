@@ -187,13 +187,20 @@ def corrected_options(traces, stage, free, per_trace, fix, integrator) -> None:
         )
 
 
-def mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str] | None:
-    """Mechanism variants from --with and/or an earlier diagnosis (None: neither given)."""
+def mechanism_option(
+    with_: str | None, with_diagnosis: Path | None
+) -> tuple[list[str], list] | None:
+    """Catalog mechanism variants from --with and/or an earlier diagnosis, and the
+    diagnosis's learned terms (:class:`ewb_ident.diagnosis.discovery.LearnedSpec`);
+    ``None``: neither option given."""
     if with_ is None and with_diagnosis is None:
         return None
     names = name_list(with_) or []
+    specs: list = []
     if with_diagnosis is not None:
         import json
+
+        from ewb_ident.diagnosis.discovery import LearnedSpec, TermError
 
         path = with_diagnosis / "diagnosis.json" if with_diagnosis.is_dir() else with_diagnosis
         try:
@@ -203,26 +210,27 @@ def mechanism_option(with_: str | None, with_diagnosis: Path | None) -> list[str
                 for f in doc["findings"]
                 if f.get("catalog", True)
             ]
+            learned = [f for f in doc["findings"] if not f.get("catalog", True)]
         except (OSError, ValueError, KeyError, TypeError) as err:
             fail(f"--with-diagnosis {with_diagnosis}: cannot read diagnosis.json ({err})")
         found = [m for m in found if not m.startswith("unexplained_")]
-        learned = [f.get("place") for f in doc.get("findings", []) if f.get("place")]
-        if not found and learned:
-            fail(
-                f"--with-diagnosis {with_diagnosis}: its findings are learned terms (at "
-                f"{', '.join(learned)}), not catalog mechanisms; the corrected fit takes "
-                "catalog mechanisms only: the whole chain refitted with the learned terms is "
-                "in that diagnosis.json's 'augmented' block"
-            )
-        if not found:
+        try:
+            specs = [
+                LearnedSpec.from_json(f.get("basis"), f"{path}: finding {f.get('effect')}")
+                for f in learned
+            ]
+        except TermError as err:
+            fail(str(err))
+        if not found and not specs:
             fail(
                 f"--with-diagnosis {with_diagnosis}: the diagnosis found no catalog mechanism "
-                "(verdict none or unexplained); fit without it"
+                "and no learned term (verdict none, or a mismatch nothing explains); fit "
+                "without it"
             )
         names += [m for m in found if m not in names]
-    if not names:
+    if not names and not specs:
         fail("--with: name at least one catalog mechanism")
-    return names
+    return names, specs
 
 
 def command_line() -> str:

@@ -94,9 +94,9 @@ def report(
 
 
 def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
-    """The corrected model's posterior when the diagnosis found catalog physics, else
-    (None, why not); None, None when there is nothing to correct."""
-    if diag is None or diag.verdict != "found" or not diag.corrected_mechanisms():
+    """The corrected model's posterior when the diagnosis found catalog physics or a
+    learned term, else (None, why not); None, None when there is nothing to correct."""
+    if diag is None or diag.corrected is None:
         return None, None
     if not posterior:
         return None, "its posterior was not run (--no-posterior)"
@@ -106,7 +106,7 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
     from ewb_ident.inference.log_posterior import SampleError
     from ewb_ident.inference.posterior import sample_corrected
 
-    mechs = diag.corrected_mechanisms()
+    mechs = diag.corrected.mechanisms
     typer.echo(f"sampling the posterior of the corrected model ({', '.join(mechs)}) ...")
     try:
         return sample_corrected(trs[0], diag.corrected, seed=seed), None

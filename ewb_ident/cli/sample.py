@@ -53,8 +53,7 @@ def sample(
     priors: Annotated[
         Path | None,
         typer.Option(
-            help="TOML file of priors overriding the defaults "
-            "(ewb_ident/inference/priors.toml)."
+            help="TOML file of priors overriding the defaults (ewb_ident/inference/priors.toml)."
         ),
     ] = None,
     noise: Annotated[
@@ -155,7 +154,7 @@ def sample(
                 **common,
             )
         else:
-            result = sample_corrected(trs[0], fit_corrected(trs[0], mechanisms), **common)
+            result = sample_corrected(trs[0], fit_corrected(trs[0], *mechanisms), **common)
     except errors as err:
         fail(str(err))
     finally:

@@ -37,16 +37,19 @@ def validate(
     OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
     check_out(out)
     from ewb_ident.data.outputs import atomic_write, json_text
-    from ewb_ident.inference.validate import ValidateError, load_params
+    from ewb_ident.diagnosis.corrected import CorrectedModel
+    from ewb_ident.diagnosis.session import DiagnoseError
+    from ewb_ident.inference.validate import ValidateError, load_document, load_params
     from ewb_ident.inference.validate import validate as run_validate
     from ewb_ident.reporting.report_figures import validation_figure
     from ewb_ident.reporting.summaries import validation_summary
 
     try:
         p = load_params(params)
+        model = CorrectedModel.from_json(load_document(params), str(params))
         (tr,) = read_traces([trace], None, mapping, fill_gaps, no_unit_check, r_eff)
-        result = run_validate(tr, p)
-    except (*bad_input_errors(), ValidateError) as err:
+        result = run_validate(tr, p, model)
+    except (*bad_input_errors(), ValidateError, DiagnoseError) as err:
         fail(str(err))
     text = json_text(result.to_json() | {"trace_file": str(trace), "params_file": str(params)})
     fig = validation_figure(tr, result)

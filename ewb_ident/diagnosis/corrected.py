@@ -3,13 +3,15 @@ mechanisms, refitted from the voltage, with every parameter's value and standard
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.trace import Trace
+from ewb_ident.diagnosis.discovery import LearnedSpec, TermError
 from ewb_ident.diagnosis.session import (
     BIC_THRESHOLD,
     DiagnoseError,
@@ -25,22 +27,43 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
+from ewb_ident.mechanisms.learned import LearnedTerm
 from ewb_ident.model.numerics import numerics
 
 
-def corrected_of(trace: Trace, chain_fits, data, sigma) -> CorrectedFit | None:
-    """The diagnosis's corrected whole chain as a :class:`CorrectedFit` (catalog
-    mechanisms only: a discovered term has no physical parameters to sample)."""
+def corrected_of(trace: Trace, chain_fits, data, sigma, discoveries=()) -> CorrectedFit | None:
+    """The diagnosis's corrected whole chain as a :class:`CorrectedFit`: its catalog
+    mechanisms and learned terms (``discoveries``: the discoveries the terms were learned
+    from, by place)."""
     catalog = {m.variant for m in variants()}
+    by_place = {d.place: d for d in discoveries}
     f0, f1 = chain_fits[0], chain_fits[-1]
-    if not f1.mechanisms or any(m.variant not in catalog for m in f1.mechanisms):
+    docs = []
+    for m in f1.mechanisms:
+        if isinstance(m, LearnedTerm) and m.place in by_place:
+            d = by_place[m.place]
+            vals = m.values()
+            coef = [vals[f"c{j}"] for j in range(len(vals))]
+            spec = LearnedSpec.of(d, coef)
+            docs.append(
+                {
+                    "place": d.place,
+                    "equation": d.equation(coef),
+                    "depends_on": list(spec.depends_on),
+                    "basis": spec.to_json(),
+                }
+            )
+        elif m.variant not in catalog:
+            return None
+    if not f1.mechanisms:
         return None
     notes = () if f1.converged else ("the corrected whole-chain fit did not converge",)
-    return corrected_record(trace, f0, f1, data, bic_evidence(f1, f0, sigma), notes)
+    return corrected_record(trace, f0, f1, data, bic_evidence(f1, f0, sigma), notes, docs)
 
 
-def corrected_record(trace: Trace, f0, f1, data, ev, notes) -> CorrectedFit:
-    """A :class:`CorrectedFit` from the baseline ``f0`` and corrected ``f1`` chain fits."""
+def corrected_record(trace: Trace, f0, f1, data, ev, notes, learned=()) -> CorrectedFit:
+    """A :class:`CorrectedFit` from the baseline ``f0`` and corrected ``f1`` chain fits
+    (``learned``: the refitted terms' documents)."""
     tables = model_tables([f0, f1], True)
     return CorrectedFit(
         trace_name=trace.name,
@@ -59,7 +82,35 @@ def corrected_record(trace: Trace, f0, f1, data, ev, notes) -> CorrectedFit:
         predictions={k: np.asarray(v) for k, v in f1.predictions.items()},
         fit=f1,
         data=data,
+        learned=tuple(learned),
+        context={"omega_ref": float(data["omega_ref"])},
     )
+
+
+def with_terms(data: dict[str, Any], trace: Trace, specs, values) -> dict[str, Any]:
+    """``data`` with the basis series of learned terms (:class:`LearnedSpec`) rebuilt on
+    ``trace`` with the model at ``values``."""
+    n_pad = int(np.asarray(data["t"]).shape[0])
+    learned = dict(data.get("learned", {}))
+    for spec in specs:
+        learned[spec.place] = jnp.asarray(spec.basis(spec.signals_on(trace, values), n_pad))
+    return dict(data) | {"learned": learned}
+
+
+def _refitted(spec: LearnedSpec, f: AugFit) -> LearnedSpec:
+    term = next(m for m in f.mechanisms if isinstance(m, LearnedTerm) and m.place == spec.place)
+    vals = term.values()
+    return replace(spec, coef=tuple(vals[f"c{j}"] for j in range(len(vals))))
+
+
+def _learned_doc(spec: LearnedSpec, trace: Trace, f: AugFit) -> dict[str, Any]:
+    sig = spec.signals_on(trace, f.values)
+    return {
+        "place": spec.place,
+        "equation": spec.equation(sig),
+        "depends_on": list(spec.depends_on),
+        "basis": spec.to_json(),
+    }
 
 
 def model_tables(chain_fits: Sequence[AugFit], ok: bool) -> dict[str, dict]:
@@ -134,6 +185,11 @@ class CorrectedFit:
     data: dict[str, Any] | None = field(default=None, repr=False)
     stderr_white: dict[str, float | None] = field(default_factory=dict)
     baseline_stderr_white: dict[str, float | None] = field(default_factory=dict)
+    #: Each learned term refitted: ``place``, ``equation``, ``depends_on`` and its
+    #: ``basis`` (:meth:`~ewb_ident.diagnosis.discovery.LearnedSpec.to_json`).
+    learned: tuple[dict[str, Any], ...] = ()
+    #: What the model's predictions need beside the parameters (``omega_ref``, rad/s).
+    context: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A ``fit.json`` document (contract keys) for the corrected model."""
@@ -153,6 +209,8 @@ class CorrectedFit:
             },
             "evidence": {"delta_bic": self.delta_bic},
             "warnings": list(self.warnings),
+            "learned": list(self.learned),
+            "context": dict(self.context),
         }
 
 
@@ -187,12 +245,19 @@ def mechanism_templates(names: Sequence[str]) -> list[AbstractMechanism]:
 
 
 @numerics
-def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
-    """Fit the seed chain augmented by catalog mechanisms, from the voltage.
+def fit_corrected(
+    trace: Trace, mechanisms: Sequence[str], learned: Sequence[LearnedSpec] = ()
+) -> CorrectedFit:
+    """Fit the seed chain augmented by catalog mechanisms and learned terms, from the
+    voltage.
 
-    Each mechanism is first fitted teacher-forced at its own stages (from its own
-    starting points), then the whole chain is fitted from the logged voltage with every
-    mechanism on, from the baseline chain and from the teacher-forced values.
+    Each catalog mechanism is first fitted teacher-forced at its own stages (from its
+    own starting points), then the whole chain is fitted from the logged voltage with
+    every mechanism on, from the baseline chain and from the teacher-forced values. A
+    learned term (a diagnosis's finding outside the catalog) starts from its
+    coefficients; its inputs are rebuilt on ``trace`` from the baseline chain, then
+    once more at the corrected parameters and the chain refitted, so the term's inputs
+    and the parameters agree (as :func:`simulate_corrected` rebuilds them elsewhere).
 
     Parameters
     ----------
@@ -200,12 +265,24 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
         One trace with ``voltage_V`` and ``theta_deg``.
     mechanisms
         Catalog ids or variants, e.g. ``["backlash", "sensor_delay[force_N]"]``.
+    learned
+        Learned terms (e.g. from ``diagnosis.json``'s findings, their ``basis``).
+
+    Raises
+    ------
+    DiagnoseError
+        A mechanism or term that cannot be fitted on this trace.
     """
     templates = mechanism_templates(mechanisms)
     if not (trace.has("voltage_V") and trace.has("theta_deg")):
         raise DiagnoseError(
             f"{trace.label}: the corrected whole-chain fit needs voltage_V and theta_deg"
         )
+    if not templates and not learned:
+        raise DiagnoseError("the corrected fit needs a catalog mechanism or a learned term")
+    places = [s.place for s in learned]
+    if len(set(places)) < len(places):
+        raise DiagnoseError(f"two learned terms act at the same place ({', '.join(places)})")
     ses = Session(trace)
     ses.baseline()
     notes = list(ses.base_messages)
@@ -218,25 +295,44 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
         reason = m.unsupported_reason(ses.cols, ses.ctx)
         if reason:
             raise DiagnoseError(f"--with {m.variant}: {reason}")
-    stages = stage_order({s for m in templates for s in ses.mechanism_stages(m)})
-    # A flexible form starts from its catalog form's fit, as in the diagnosis.
-    f_tf = ses.fit(stages, [m.in_form("") for m in templates])
-    if any(m.form for m in templates):
-        flexible = [f.in_form(m.form) for f, m in zip(f_tf.mechanisms, templates, strict=True)]
-        f_tf = ses.fit(stages, flexible, explore=[bool(m.form) for m in templates])
-    tf = list(f_tf.mechanisms)
+    tf: list[AbstractMechanism] = []
+    if templates:
+        stages = stage_order({s for m in templates for s in ses.mechanism_stages(m)})
+        # A flexible form starts from its catalog form's fit, as in the diagnosis.
+        f_tf = ses.fit(stages, [m.in_form("") for m in templates])
+        if any(m.form for m in templates):
+            flexible = [f.in_form(m.form) for f, m in zip(f_tf.mechanisms, templates, strict=True)]
+            f_tf = ses.fit(stages, flexible, explore=[bool(m.form) for m in templates])
+        tf = list(f_tf.mechanisms)
     data, chain_free, sigma, f0 = chain_baseline(ses, notes)
-    f1 = fit_mechanisms(
-        data,
-        ("chain",),
-        chain_free,
-        tf,
-        tuple(sigma),
-        start={n: f0.values[n] for n in chain_free},
-        ctx=ses.ctx,
-        explore=[True] * len(tf),
-        alt_starts=[{n: ses.values[n] for n in chain_free if n in ses.values}],
-    )
+    try:
+        if learned:
+            data = with_terms(data, trace, learned, f0.values)
+        mechs = [*tf, *(spec.term() for spec in learned)]
+
+        def chain_fit(data, mechs, start, explore):
+            return fit_mechanisms(
+                data,
+                ("chain",),
+                chain_free,
+                mechs,
+                tuple(sigma),
+                start={n: start[n] for n in chain_free},
+                ctx=ses.ctx,
+                explore=explore,
+                alt_starts=[{n: ses.values[n] for n in chain_free if n in ses.values}],
+            )
+
+        f1 = chain_fit(data, mechs, f0.values, [True] * len(tf) + [False] * len(learned))
+        if learned and f1.converged:
+            specs = [_refitted(spec, f1) for spec in learned]
+            data2 = with_terms(data, trace, specs, f1.values)
+            f2 = chain_fit(data2, list(f1.mechanisms), f1.values, [False] * len(mechs))
+            if f2.converged:
+                f1, data = f2, data2
+        docs = [_learned_doc(_refitted(spec, f1), trace, f1) for spec in learned]
+    except TermError as err:
+        raise DiagnoseError(str(err)) from None
     ev = bic_evidence(f1, f0, sigma)
     if not f1.converged:
         notes.append("the corrected whole-chain fit did not converge")
@@ -245,4 +341,104 @@ def fit_corrected(trace: Trace, mechanisms: Sequence[str]) -> CorrectedFit:
             f"the mechanisms do not improve the whole chain (dBIC {ev['delta_bic']:.1f} > "
             f"-{BIC_THRESHOLD:g}): this trace gives no evidence for them"
         )
-    return corrected_record(trace, f0, f1, data, ev, notes)
+    return corrected_record(trace, f0, f1, data, ev, notes, docs)
+
+
+# ----------------------------------------------------------------------------- elsewhere
+
+
+@dataclass(frozen=True)
+class CorrectedModel:
+    """A corrected fit's model as its ``fit.json`` holds it (catalog mechanisms with
+    their values, learned terms), to simulate it on a trace it was not fitted to.
+
+    Attributes
+    ----------
+    mechanisms
+        The catalog mechanisms with their fitted values.
+    learned
+        The learned terms with their fitted coefficients.
+    omega_ref
+        The disc speed a speed-dependent friction coefficient refers to, rad/s.
+    """
+
+    mechanisms: tuple[AbstractMechanism, ...]
+    learned: tuple[LearnedSpec, ...]
+    omega_ref: float = 1.0
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(m.variant for m in self.mechanisms) + tuple(
+            f"learned[{s.place}]" for s in self.learned
+        )
+
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any], where: str) -> CorrectedModel | None:
+        """The corrected model of a ``fit.json`` document, ``None`` for a fit without
+        mechanisms.
+
+        Raises
+        ------
+        DiagnoseError
+            Mechanisms or learned terms that cannot be read.
+        """
+        names = doc.get("mechanisms") or []
+        if not names:
+            return None
+        params = doc.get("params") or {}
+        learned_docs = doc.get("learned") or []
+        try:
+            specs = tuple(
+                LearnedSpec.from_json(d.get("basis") if isinstance(d, dict) else None, where)
+                for d in learned_docs
+            )
+        except TermError as err:
+            raise DiagnoseError(str(err)) from None
+        catalog = [n for n in names if not str(n).startswith("learned[")]
+        if len(specs) != len(names) - len(catalog):
+            raise DiagnoseError(
+                f"{where}: 'mechanisms' lists learned terms but 'learned' does not hold "
+                "their bases; give the fit.json that `fit --with-diagnosis` wrote"
+            )
+        mechs = []
+        for variant in catalog:
+            (m,) = mechanism_templates([str(variant)])
+            have = {k.split(".", 1)[1]: v for k, v in params.items() if k.startswith(f"{variant}.")}
+            form = next(
+                (c for c in (m, *m.refinements()) if {i.name for i in c.param_info()} == set(have)),
+                None,
+            )
+            if form is None or not all(isinstance(v, int | float) for v in have.values()):
+                raise DiagnoseError(
+                    f"{where}: the parameters of {variant} ({', '.join(sorted(have))}) are "
+                    "not those of any of its forms; give the fit.json `fit --with` wrote"
+                )
+            mechs.append(form.with_values({k: float(v) for k, v in have.items()}))
+        omega_ref = float((doc.get("context") or {}).get("omega_ref", 1.0))
+        return cls(tuple(mechs), specs, omega_ref)
+
+    def simulate(self, trace: Trace, values: Mapping[str, float]) -> dict[str, np.ndarray]:
+        """Every channel of the corrected chain on ``trace`` from its voltage, with the
+        base parameters and start angle ``values`` (SI, ``theta0_deg``).
+
+        Raises
+        ------
+        DiagnoseError
+            A learned term whose inputs the trace does not supply.
+        """
+        from ewb_ident.inference.augmented import make_data
+        from ewb_ident.model.params import MODEL_PARAMS, EWBParams
+        from ewb_ident.model.predict import n_substeps, predict
+
+        data = make_data(trace, {}, values, omega_ref=self.omega_ref)
+        mechs = list(self.mechanisms)
+        if self.learned:
+            try:
+                data = with_terms(data, trace, self.learned, values)
+            except TermError as err:
+                raise DiagnoseError(str(err)) from None
+            mechs += [s.term() for s in self.learned]
+        p = EWBParams(**{k: float(values[k]) for k in MODEL_PARAMS})
+        theta0 = jnp.asarray(float(values["theta0_deg"]))
+        out = predict("chain", p, theta0, tuple(mechs), data, n_substeps(trace.dt, mechs))
+        return {k: np.asarray(v)[: trace.n] for k, v in out.items()}

@@ -227,7 +227,9 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         timings=timings,
         notes=tuple(notes),
         artefacts=tuple(artefacts),
-        corrected=corrected_of(trace, chain.fits, chain.data, chain.sigma)
+        corrected=corrected_of(
+            trace, chain.fits, chain.data, chain.sigma, [d for d, _, _, _ in work.discoveries]
+        )
         if chain.ok and len(chain.fits) > 1
         else None,
         **model_tables(chain.fits, chain.ok),

@@ -42,7 +42,7 @@ Thresholds were set before any study of uncatalogued physics was run.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -58,9 +58,12 @@ from ewb_ident.diagnosis.heldout import (
     white_level,
 )
 from ewb_ident.diagnosis.inputs import (
+    PRODUCT,
     Column,
     Signal,
     carriers_of,
+    form_fn,
+    form_values,
     input_signals,
     learned_groups,
     library,
@@ -273,6 +276,8 @@ class Discovery:
     method: str
     places: tuple[PlaceFit, ...]
     signals: dict[str, Signal] = field(repr=False)
+    #: The channels its inputs took from the model rather than the recording.
+    model: tuple[str, ...] = ()
 
     @property
     def columns(self) -> list[Column]:
@@ -289,18 +294,28 @@ class Discovery:
 
     def equation(self, coef: Sequence[float] | None = None) -> str:
         """The distilled term in SI units, ``quantity = expression [unit]``."""
-        coef = list(self.coef if coef is None else coef)
-        info = PLACES[self.place]
-        parts, k = [], 0
-        for t in self.terms:
-            cs = coef[k : k + len(t)]
-            k += len(t)
-            if len(t) == 2:
-                parts.append(render_pair(t, cs))
-            else:
-                parts.append(render(t[0], cs[0], self.signals))
-        expr = " ".join(parts).lstrip("+")
-        return f"{info.quantity} = {expr} [{info.unit}]"
+        return equation_of(
+            self.place, self.terms, self.coef if coef is None else coef, self.signals
+        )
+
+
+def equation_of(
+    place: str,
+    terms: Sequence[Sequence[Column]],
+    coef: Sequence[float],
+    signals: Mapping[str, Signal],
+) -> str:
+    """A term's equation in SI units, ``quantity = expression [unit]`` (a sine and
+    cosine pair as one harmonic)."""
+    coef = list(coef)
+    info = PLACES[place]
+    parts, k = [], 0
+    for t in terms:
+        cs = coef[k : k + len(t)]
+        k += len(t)
+        parts.append(render_pair(t, cs) if len(t) == 2 else render(t[0], cs[0], signals))
+    expr = " ".join(parts).lstrip("+")
+    return f"{info.quantity} = {expr} [{info.unit}]"
 
 
 def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
@@ -502,13 +517,14 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
             continue
         fit = fits_of(stages)
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
-        sig = input_signals(trace, model_channels(ses, fit), fine)
+        model = model_channels(ses, fit)
+        sig = input_signals(trace, model, fine)
         groups = learned_groups(sig, carriers_of(place))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue
         pf = learn_place(d, groups, place)
-        results.append((pf, d, groups, sig, stages))
+        results.append((pf, d, groups, sig, stages, tuple(model)))
     if not results:
         return None
     # The place whose term removes the most held-out residual (in units of the noise:
@@ -519,10 +535,20 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     if close:
         results.remove(min(close, key=lambda x: _specificity(x[0].place)))
         results.insert(0, min(close, key=lambda x: _specificity(x[0].place)))
-    pf, d, groups, sig, stages = results[0]
+    pf, d, groups, sig, stages, model = results[0]
     if not pf.groups:
         return Discovery(
-            stage, pf.place, stages, pf, pf, (), (), method, tuple(r[0] for r in results), sig
+            stage,
+            pf.place,
+            stages,
+            pf,
+            pf,
+            (),
+            (),
+            method,
+            tuple(r[0] for r in results),
+            sig,
+            model,
         )
     items = library(sig, pf.groups)
     groups_l = {f"item{j}": list(it) for j, it in enumerate(items)}
@@ -541,6 +567,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         method,
         tuple(r[0] for r in results),
         sig,
+        model,
     )
 
 
@@ -555,6 +582,165 @@ def basis_matrix(disc: Discovery, n_pad: int) -> np.ndarray:
     B = np.zeros((n_pad, len(cols)))
     B[:n] = np.stack(cols, axis=1)
     return B
+
+
+class TermError(ValueError):
+    """A learned term that cannot be read or rebuilt on a trace."""
+
+
+def _inputs_of(col: Column) -> tuple[str, ...]:
+    if col.form[0] == "one":
+        return ()
+    return tuple(col.form[1:3]) if col.form[0] in PRODUCT else (col.signal,)
+
+
+@dataclass(frozen=True)
+class LearnedSpec:
+    """A learned term as data, to refit it as part of a model on any trace: where it
+    acts, its distilled basis (each column a form of named signals,
+    :func:`ewb_ident.diagnosis.inputs.form_values`), the size each signal is normalised
+    by, which channels its inputs take from the model, and its coefficients (in the
+    place's unit per normalised column).
+
+    On a trace, the inputs are rebuilt as the diagnosis built them: recorded channels
+    through their leave-one-out average, the channels in ``model`` (and those the trace
+    does not record) from the seed chain simulated from the voltage at the model's
+    parameters, and the motor's states within each sample for a term in the motor.
+    """
+
+    place: str
+    terms: tuple[tuple[Column, ...], ...]
+    refs: dict[str, float]
+    model: tuple[str, ...]
+    coef: tuple[float, ...]
+
+    @classmethod
+    def of(cls, disc: Discovery, coef: Sequence[float]) -> LearnedSpec:
+        refs = {n: disc.signals[n].ref for c in disc.columns for n in _inputs_of(c)}
+        terms = tuple(tuple(Column(c.label, c.signal, None, c.form) for c in t) for t in disc.terms)
+        return cls(disc.place, terms, refs, disc.model, tuple(float(c) for c in coef))
+
+    @property
+    def columns(self) -> list[Column]:
+        return [c for t in self.terms for c in t]
+
+    @property
+    def depends_on(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(n for c in self.columns for n in _inputs_of(c)))
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "place": self.place,
+            "terms": [
+                [{"label": c.label, "signal": c.signal, "form": list(c.form)} for c in t]
+                for t in self.terms
+            ],
+            "refs": dict(self.refs),
+            "model_channels": list(self.model),
+            "coef": list(self.coef),
+        }
+
+    @classmethod
+    def from_json(cls, doc: Any, where: str) -> LearnedSpec:
+        """Read :meth:`to_json`'s document; ``where`` names it in the error.
+
+        Raises
+        ------
+        TermError
+            A document that is not a learned term's basis.
+        """
+        try:
+            terms = tuple(
+                tuple(Column(str(c["label"]), str(c["signal"]), None, tuple(c["form"])) for c in t)
+                for t in doc["terms"]
+            )
+            spec = cls(
+                str(doc["place"]),
+                terms,
+                {str(k): float(v) for k, v in doc["refs"].items()},
+                tuple(str(c) for c in doc["model_channels"]),
+                tuple(float(c) for c in doc["coef"]),
+            )
+            for c in spec.columns:
+                if c.form[0] != "one":
+                    form_fn(PRODUCT.get(c.form[0], c.form), 1.0)
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            raise TermError(
+                f"{where}: not a learned term's basis ({type(err).__name__}: {err}); use the "
+                "'basis' of a finding that diagnose wrote"
+            ) from None
+        if spec.place not in PLACES or len(spec.coef) != len(spec.columns):
+            raise TermError(
+                f"{where}: place {spec.place!r} or its {len(spec.coef)} coefficients do not "
+                f"match its {len(spec.columns)} columns; use the 'basis' diagnose wrote"
+            )
+        if not all(np.isfinite(spec.coef)) or not all(np.isfinite(list(spec.refs.values()))):
+            raise TermError(f"{where}: a coefficient or size is not a finite number")
+        return spec
+
+    def term(self, coef: Sequence[float] | None = None) -> LearnedTerm:
+        """The term as a mechanism (its coefficients scaled by their own size)."""
+        return learned_term(
+            self.place, [c.label for c in self.columns], self.coef if coef is None else coef
+        )
+
+    def signals_on(self, trace, values: Mapping[str, float]) -> dict[str, Signal]:
+        """The term's inputs on ``trace`` with the model at ``values`` (SI, with
+        ``theta0_deg``), normalised by the sizes it was fitted with.
+
+        Raises
+        ------
+        TermError
+            The trace lacks an input the term depends on (e.g. the disc speed).
+        """
+        from ewb_ident.data.stages import CHANNELS
+        from ewb_ident.model.integrate import simulate_chain
+        from ewb_ident.model.params import MODEL_PARAMS, EWBParams
+
+        p = EWBParams(**{k: float(values[k]) for k in MODEL_PARAMS})
+        sim = simulate_chain(
+            p, trace["voltage_V"], trace.dt, float(values["theta0_deg"]), trace.r_eff_m
+        )
+        model = {
+            ch: np.asarray(sim[ch], float)
+            for ch in CHANNELS
+            if ch in self.model or not trace.has(ch)
+        }
+        fine = motor_fine(values, trace) if self.place.startswith("motor.") else None
+        sig = input_signals(trace, model, fine)
+        missing = [n for n in self.refs if n not in sig]
+        if missing:
+            raise TermError(
+                f"{trace.label}: the learned term at {self.place} depends on "
+                f"{', '.join(missing)}, which this trace does not supply (or which does not "
+                "vary in it); refit on a trace that records it"
+            )
+        return {n: replace(s, ref=self.refs[n]) if n in self.refs else s for n, s in sig.items()}
+
+    def basis(self, signals: Mapping[str, Signal], n_pad: int | None = None) -> np.ndarray:
+        """The basis series (n or n_pad, K) on the signals of :meth:`signals_on`."""
+        n = next(iter(signals.values())).values.size
+        cols = []
+        for c in self.columns:
+            v = form_values(c.form, c.signal, signals, self.refs)
+            cols.append(np.ones(n) if v is None else v)
+        B = np.zeros((n if n_pad is None else n_pad, len(cols)))
+        B[:n] = np.stack(cols, axis=1)
+        return B
+
+    def equation(self, signals: Mapping[str, Signal], coef: Sequence[float] | None = None) -> str:
+        return equation_of(self.place, self.terms, self.coef if coef is None else coef, signals)
+
+
+def learned_term(place: str, labels: Sequence[str], coef: Sequence[float]) -> LearnedTerm:
+    """A :class:`LearnedTerm` whose optimiser coordinates are its coefficients over
+    their own sizes."""
+    return LearnedTerm(
+        place=place,
+        names=tuple(labels),
+        scales=tuple(float(max(abs(c), 1e-12)) for c in coef),
+        coef=np.asarray(coef, float),
+    )
 
 
 # ----------------------------------------------------------------------------- words

@@ -10,7 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
-from ewb_ident.diagnosis.discovery import Discovery, basis_matrix, reading
+from ewb_ident.diagnosis.discovery import (
+    Discovery,
+    LearnedSpec,
+    basis_matrix,
+    learned_term,
+    reading,
+)
 from ewb_ident.diagnosis.inputs import physical
 from ewb_ident.diagnosis.locate import (
     PHASES,
@@ -167,11 +173,7 @@ def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
     ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
     f_cur = ses.fit(T, ms, explore=[False] * len(ms))
     data = learned_data(ses.data, [disc])
-    scales = tuple(float(max(abs(c), 1e-12)) for c in disc.coef)
-    term = LearnedTerm(
-        place=disc.place, names=tuple(c.label for c in disc.columns), scales=scales,
-        coef=np.asarray(disc.coef, float),
-    )  # fmt: skip
+    term = learned_term(disc.place, [c.label for c in disc.columns], disc.coef)
     f_new = fit_mechanisms(
         data,
         T,
@@ -286,6 +288,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
         heldout=heldout,
         terms=tuple(terms),
         reading=hyp,
+        basis=LearnedSpec.of(disc, coef).to_json(),
         term_series=basis_matrix(disc, ses.trace.n) @ np.asarray(coef, float),
         **_main_input(disc),
     )

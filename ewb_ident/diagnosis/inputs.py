@@ -339,12 +339,117 @@ def carriers_of(place: str) -> tuple[str, ...]:
     return CARRIERS.get(place, ())
 
 
-def _modulated(c: Signal, s: Signal, fn) -> np.ndarray:
-    """The carrier ``c`` (normalised) times ``fn`` of ``s``'s raw values, per sample
-    (within each interval where both are resolved there)."""
-    if c.fine is not None and s.fine is not None:
-        return interval_mean(c.fine / c.ref * fn(s.fine))
-    return ev(c, lambda v: v / c.ref) * ev(s, fn)
+TRIG = {"sin": np.sin, "cos": np.cos}
+#: A product's function of its second input (its first, the carrier, is normalised).
+PRODUCT = {"prod": ("pow", 1), "prod2": ("pow", 2), "prodabs": ("abs",)}
+
+
+def form_fn(form: tuple, r: float):
+    """The function of a signal's raw values a one-input form is (normalised by ``r``)."""
+    kind = form[0]
+    if kind == "pow":
+        return lambda v, p=form[1]: (v / r) ** p
+    if kind == "spow":
+        return lambda v: v * np.abs(v) / r**2
+    if kind == "abs":
+        return lambda v: np.abs(v) / r
+    if kind == "tanh":
+        return lambda v, w=form[1]: np.tanh(v / r / w)
+    if kind == "sqrt":
+        return lambda v: np.sqrt(np.abs(v) / r)
+    if kind == "sat":
+        return lambda v, w=form[1]: 1 - np.exp(-np.abs(v) / r / w)
+    if kind == "hinge":
+        return lambda v, k=form[1]: np.maximum(v / r - k, 0.0)
+    if kind == "harm":
+        return lambda v, k=form[1], g=TRIG[form[2]]: g(k * v)
+    if kind == "period":
+        return lambda v, P=form[1], g=TRIG[form[2]]: g(2 * np.pi * v / P)
+    raise ValueError(f"unknown basis form {form!r}")
+
+
+def form_values(
+    form: tuple,
+    signal: str,
+    signals: Mapping[str, Signal],
+    refs: Mapping[str, float] | None = None,
+) -> np.ndarray | None:
+    """A basis column's values per sample from its form (``None``: the constant).
+
+    Parameters
+    ----------
+    form
+        ``(kind, *args)``: ``pow``, ``spow``, ``abs``, ``tanh``, ``sqrt``, ``sat``,
+        ``hinge``, ``harm``, ``period`` of ``signal``; ``prod``, ``prod2``, ``prodabs``
+        of the carrier ``form[1]`` times a function of ``form[2]``; ``one``.
+    signal
+        The input it depends on (a product's: ``"carrier*other"``).
+    signals
+        The signals (:func:`input_signals`).
+    refs
+        The size each signal is normalised by; default each signal's own ``ref`` (a
+        term rebuilt on another trace keeps the sizes it was fitted with, so its
+        coefficients keep their meaning).
+    """
+    kind = form[0]
+    if kind == "one":
+        return None
+
+    def ref(name: str) -> float:
+        return float(refs[name]) if refs is not None else signals[name].ref
+
+    if kind in PRODUCT:
+        c, s = signals[form[1]], signals[form[2]]
+        fn, rc = form_fn(PRODUCT[kind], ref(form[2])), ref(form[1])
+        if c.fine is not None and s.fine is not None:
+            return interval_mean(c.fine / rc * fn(s.fine))
+        return ev(c, lambda v: v / rc) * ev(s, fn)
+    return ev(signals[signal], form_fn(form, ref(signal)))
+
+
+def _col(label: str, signal: str, form: tuple, signals: Mapping[str, Signal]) -> Column:
+    return Column(label, signal, form_values(form, signal, signals), form)
+
+
+def _products(c: Signal, s: Signal, signals: Mapping[str, Signal]) -> list[Column]:
+    """The carrier ``c`` times ``s``, ``s²`` (and ``|s|`` for a signed ``s``)."""
+    g = f"{c.name}*{s.name}"
+    cols = [
+        _col(f"{c.symbol}·{s.symbol}", g, ("prod", c.name, s.name), signals),
+        _col(f"{c.symbol}·{s.symbol}²", g, ("prod2", c.name, s.name), signals),
+    ]
+    if s.kind == "signed":
+        cols.append(_col(f"{c.symbol}·|{s.symbol}|", g, ("prodabs", c.name, s.name), signals))
+    return cols
+
+
+def _periodic(s: Signal, period: float, signals) -> list[Column]:
+    """A sine and cosine of the angle ``s`` with ``period`` (degrees)."""
+    return [
+        _col(f"{f}(2π{s.symbol}/{period:g}°)", s.name, ("period", period, f), signals) for f in TRIG
+    ]
+
+
+def _harmonic(s: Signal, k: int, signals) -> list[Column]:
+    """A sine and cosine of ``k`` times the phase ``s``."""
+    return [_col(f"{f}({_times(k)}{s.symbol})", s.name, ("harm", k, f), signals) for f in TRIG]
+
+
+def _signed(s: Signal, signals) -> list[Column]:
+    """The odd functions of a signed input."""
+    return [
+        _col(s.symbol, s.name, ("pow", 1), signals),
+        _col(f"{s.symbol}|{s.symbol}|", s.name, ("spow", 2), signals),
+        _col(f"{s.symbol}³", s.name, ("pow", 3), signals),
+        _col(f"sign({s.symbol})", s.name, ("tanh", 0.05), signals),
+    ]
+
+
+def _hinges(s: Signal, shares: Sequence[float], signals) -> list[Column]:
+    return [
+        _col(f"max(0, {s.symbol} − {k * s.ref:.3g})", s.name, ("hinge", k), signals)
+        for k in _hinge_knots(s.values / s.ref, shares)
+    ]
 
 
 def learned_groups(
@@ -358,75 +463,17 @@ def learned_groups(
         if c is None:
             continue
         for s in signals.values():
-            if s.name == cname or s.kind not in ("level", "signed"):
-                continue
-            r = s.ref
-            cols = [
-                Column(
-                    f"{c.symbol}·{s.symbol}",
-                    f"{cname}*{s.name}",
-                    _modulated(c, s, lambda v, r=r: v / r),
-                    ("prod", cname, s.name),
-                ),
-                Column(
-                    f"{c.symbol}·{s.symbol}²",
-                    f"{cname}*{s.name}",
-                    _modulated(c, s, lambda v, r=r: (v / r) ** 2),
-                    ("prod2", cname, s.name),
-                ),
-            ]
-            if s.kind == "signed":
-                cols.append(
-                    Column(
-                        f"{c.symbol}·|{s.symbol}|",
-                        f"{cname}*{s.name}",
-                        _modulated(c, s, lambda v, r=r: np.abs(v) / r),
-                        ("prodabs", cname, s.name),
-                    )
-                )
-            groups[f"{cname}*{s.name}"] = cols
+            if s.name != cname and s.kind in ("level", "signed"):
+                groups[f"{cname}*{s.name}"] = _products(c, s, signals)
     for s in signals.values():
-        r = s.ref
         if s.kind == "signed":
-            groups[s.name] = [
-                Column(f"{s.symbol}", s.name, ev(s, lambda v, r=r: v / r), ("pow", 1)),
-                Column(
-                    f"{s.symbol}|{s.symbol}|",
-                    s.name,
-                    ev(s, lambda v, r=r: v * np.abs(v) / r**2),
-                    ("spow", 2),
-                ),
-                Column(f"{s.symbol}³", s.name, ev(s, lambda v, r=r: (v / r) ** 3), ("pow", 3)),
-                Column(
-                    f"sign({s.symbol})",
-                    s.name,
-                    ev(s, lambda v, r=r: np.tanh(v / r / 0.05)),
-                    ("tanh", 0.05),
-                ),
-            ]
+            groups[s.name] = _signed(s, signals)
         elif s.kind == "phase":
-            groups[s.name] = [
-                Column(
-                    f"{f}({_times(k)}{s.symbol})",
-                    s.name,
-                    ev(s, lambda v, r=r, k=k, fn=fn: fn(k * v)),
-                    ("harm", k, f),
-                )
-                for k in (1, 2)
-                for f, fn in (("sin", np.sin), ("cos", np.cos))
-            ]
+            groups[s.name] = [c for k in (1, 2) for c in _harmonic(s, k, signals)]
         else:
-            cols = [Column(s.symbol, s.name, ev(s, lambda v, r=r: v / r), ("pow", 1))]
-            for k in _hinge_knots(s.values / r):
-                cols.append(
-                    Column(
-                        f"max(0, {s.symbol} − {k * r:.3g})",
-                        s.name,
-                        ev(s, lambda v, r=r, k=k: np.maximum(v / r - k, 0.0)),
-                        ("hinge", k),
-                    )
-                )
-            groups[s.name] = cols
+            groups[s.name] = [_col(s.symbol, s.name, ("pow", 1), signals)] + _hinges(
+                s, KNOTS, signals
+            )
             if s.kind == "angle":
                 vals = s.values if s.fine is None else s.fine.reshape(-1)
                 step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0
@@ -434,15 +481,7 @@ def learned_groups(
                 for P in PERIODS_DEG:
                     if span < 1.5 * P or step > P / 4:
                         continue  # not a period this trace covers or resolves
-                    groups[f"{s.name}@{P:g}"] = [
-                        Column(
-                            f"{f}(2π{s.symbol}/{P:g}°)",
-                            s.name,
-                            ev(s, lambda v, r=r, P=P, fn=fn: fn(2 * np.pi * v / P)),
-                            ("period", P, f),
-                        )
-                        for f, fn in (("sin", np.sin), ("cos", np.cos))
-                    ]
+                    groups[f"{s.name}@{P:g}"] = _periodic(s, P, signals)
     return groups
 
 
@@ -457,99 +496,42 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[C
             continue
         if "*" in g:  # a carrier times another input
             cname, _, other = g.partition("*")
-            c, o = signals[cname], signals[other]
-            r = o.ref
-            forms = [
-                (f"{c.symbol}·{o.symbol}", lambda v, r=r: v / r, ("prod", cname, other)),
-                (f"{c.symbol}·{o.symbol}²", lambda v, r=r: (v / r) ** 2, ("prod2", cname, other)),
-                (
-                    f"{c.symbol}·|{o.symbol}|",
-                    lambda v, r=r: np.abs(v) / r,
-                    ("prodabs", cname, other),
-                ),
-            ]
-            items += [[Column(lbl, g, _modulated(c, o, fn), form)] for lbl, fn, form in forms]
+            items += [[c] for c in _products(signals[cname], signals[other], signals)]
             continue
         name, _, per = g.partition("@")
         s = signals[name]
-        r = s.ref
         if per:
-            P = float(per)
-            for h in (1, 2):
-                items.append(
-                    [
-                        Column(
-                            f"{f}(2π{s.symbol}/{P / h:g}°)",
-                            name,
-                            ev(s, lambda v, r=r, P=P, h=h, fn=fn: fn(2 * np.pi * h * v / P)),
-                            ("period", P / h, f),
-                        )
-                        for f, fn in (("sin", np.sin), ("cos", np.cos))
-                    ]
-                )
+            items += [_periodic(s, float(per) / h, signals) for h in (1, 2)]
             continue
         names.append(name)
         if s.kind == "phase":
-            for k in (1, 2):
-                items.append(
-                    [
-                        Column(
-                            f"{f}({_times(k)}{s.symbol})",
-                            name,
-                            ev(s, lambda v, r=r, k=k, fn=fn: fn(k * v)),
-                            ("harm", k, f),
-                        )
-                        for f, fn in (("sin", np.sin), ("cos", np.cos))
-                    ]
-                )
+            items += [_harmonic(s, k, signals) for k in (1, 2)]
             continue
+        sym = s.symbol
         cand = [
-            (f"{s.symbol}", lambda v, r=r: v / r, ("pow", 1)),
-            (f"{s.symbol}²", lambda v, r=r: (v / r) ** 2, ("pow", 2)),
-            (f"{s.symbol}³", lambda v, r=r: (v / r) ** 3, ("pow", 3)),
+            _col(sym, name, ("pow", 1), signals),
+            _col(f"{sym}²", name, ("pow", 2), signals),
+            _col(f"{sym}³", name, ("pow", 3), signals),
         ]
         if s.kind == "signed":
             cand += [
-                (f"{s.symbol}|{s.symbol}|", lambda v, r=r: v * np.abs(v) / r**2, ("spow", 2)),
-                (f"|{s.symbol}|", lambda v, r=r: np.abs(v) / r, ("abs",)),
-                (f"sign({s.symbol})", lambda v, r=r: np.tanh(v / r / 0.05), ("tanh", 0.05)),
-                (
-                    f"tanh({s.symbol}/{0.3 * r:.3g})",
-                    lambda v, r=r: np.tanh(v / r / 0.3),
-                    ("tanh", 0.3),
-                ),
+                _col(f"{sym}|{sym}|", name, ("spow", 2), signals),
+                _col(f"|{sym}|", name, ("abs",), signals),
+                _col(f"sign({sym})", name, ("tanh", 0.05), signals),
+                _col(f"tanh({sym}/{0.3 * s.ref:.3g})", name, ("tanh", 0.3), signals),
             ]
         else:
             cand += [
-                (f"√{s.symbol}", lambda v, r=r: np.sqrt(np.abs(v) / r), ("sqrt",)),
-                (
-                    f"1 − exp(−{s.symbol}/{0.3 * r:.3g})",
-                    lambda v, r=r: 1 - np.exp(-np.abs(v) / r / 0.3),
-                    ("sat", 0.3),
-                ),
+                _col(f"√{sym}", name, ("sqrt",), signals),
+                _col(f"1 − exp(−{sym}/{0.3 * s.ref:.3g})", name, ("sat", 0.3), signals),
+                *_hinges(s, (0.5,), signals),
             ]
-            for k in _hinge_knots(s.values / r, (0.5,)):
-                cand.append(
-                    (
-                        f"max(0, {s.symbol} − {k * r:.3g})",
-                        lambda v, r=r, k=k: np.maximum(v / r - k, 0),
-                        ("hinge", k),
-                    )
-                )
-        items += [[Column(lbl, name, ev(s, fn), form)] for lbl, fn, form in cand]
+        items += [[c] for c in cand]
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             sa, sb = signals[a], signals[b]
-            items.append(
-                [
-                    Column(
-                        f"{sa.symbol}·{sb.symbol}",
-                        f"{a}*{b}",
-                        ev(sa, lambda v, q=sa.ref: v / q) * ev(sb, lambda v, q=sb.ref: v / q),
-                        ("prod", a, b),
-                    )
-                ]
-            )
+            label = f"{sa.symbol}·{sb.symbol}"
+            items.append([_col(label, f"{a}*{b}", ("prod", a, b), signals)])
     return items
 
 

@@ -92,6 +92,9 @@ class Finding:
     heldout: dict[str, Any] = field(default_factory=dict)
     terms: tuple[dict[str, Any], ...] = ()
     reading: str = ""
+    #: The discovered term as data (:meth:`ewb_ident.diagnosis.discovery.LearnedSpec.to_json`),
+    #: to refit it on a trace (``fit --with-diagnosis``).
+    basis: dict[str, Any] = field(default_factory=dict)
     #: The discovered term per sample, in the place's unit, and its main input with
     #: that input's label (for figures; not in JSON).
     term_series: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -131,6 +134,7 @@ class Finding:
                 for t in self.terms
             ]
             out["reading"] = self.reading or None
+            out["basis"] = self.basis
         return out
 
 
@@ -222,9 +226,7 @@ class DiagnosisResult:
                 "params": self.baseline_params,
                 "stderr": self.baseline_stderr,
                 "stderr_white": self.baseline_stderr_white,
-                "stage_metrics": {
-                    s: metrics_json(m) for s, m in self.stage_metrics_before.items()
-                },
+                "stage_metrics": {s: metrics_json(m) for s, m in self.stage_metrics_before.items()},
             },
             "augmented": {
                 "metrics": metrics_json(self.augmented_metrics),

@@ -80,6 +80,7 @@ from ewb_ident.inference.log_posterior import SampleError, SamplerSettings, buil
 from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
 from ewb_ident.inference.problem import FitError
+from ewb_ident.mechanisms.learned import LearnedTerm
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
 from ewb_ident.model.numerics import numerics
 
@@ -311,7 +312,14 @@ def sample_corrected(
     prior_table = load_priors(priors)
     t_start = time.perf_counter()
     start = _corrected_start(trace, corrected)
-    table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
+    infos = {
+        f"{m.variant}.{i.name}": i
+        for m in corrected.fit.problem.templates()
+        for i in m.param_info()
+    }
+    table = {
+        n: mechanism_prior(n, infos.get(n)) for n in start.corr_names if "." in n
+    } | prior_table
     t_fit = time.perf_counter()
     lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
     run = run_chains(lp, [start], names, u0, table, settings, progress)
@@ -353,6 +361,22 @@ class _CorrectedStart:
     predictions: list[dict[str, np.ndarray]] = field(repr=False)
 
 
+def _sampled_stderr(f, names) -> dict[str, float | None]:
+    """Standard errors in the units the posterior samples: a learned coefficient's over
+    its size (:func:`ewb_ident.mechanisms.mechanism_param`)."""
+    size = {
+        f"{m.variant}.{i.name}": i.scale
+        for m in f.problem.templates()
+        if isinstance(m, LearnedTerm)
+        for i in m.param_info()
+    }
+    out = {}
+    for n in names:
+        se = f.stderr.get(n)
+        out[n] = se / size[n] if se is not None and n in size else se
+    return out
+
+
 def _corrected_start(trace: Trace, cf) -> _CorrectedStart:
     from ewb_ident.inference.augmented import residuals_and_jacobian
 
@@ -376,7 +400,7 @@ def _corrected_start(trace: Trace, cf) -> _CorrectedStart:
         corr_names=tuple(names),
         u=np.asarray(f.u, float),
         corr=cov / np.outer(sd, sd),
-        stderr={n_: f.stderr.get(n_) for n_ in names},
+        stderr=_sampled_stderr(f, names),
         problem=_AugChain(f.problem, n, (chans,)),
         data=data,
         predictions=[{ch: np.asarray(f.predictions[ch]) for ch in chans}],

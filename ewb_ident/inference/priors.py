@@ -158,8 +158,11 @@ def _number(table: Mapping[str, Any], key: str, where: str) -> float:
     return float(value)
 
 
-def parse_prior(name: str, table: Mapping[str, Any], where: str = "priors") -> Prior:
-    """Build and check one prior from its TOML table.
+def parse_prior(
+    name: str, table: Mapping[str, Any], where: str = "priors", info: ParamInfo | None = None
+) -> Prior:
+    """Build and check one prior from its TOML table (``info``: the parameter's
+    declaration, when it is not a model or catalog parameter: a learned coefficient).
 
     Raises
     ------
@@ -168,7 +171,7 @@ def parse_prior(name: str, table: Mapping[str, Any], where: str = "priors") -> P
     """
     where = f"{where}: [{name}]"
     try:
-        info = param_info(name)
+        info = info if info is not None else param_info(name)
     except KeyError:
         raise PriorError(
             f"{where}: unknown parameter; the parameters are {', '.join(PARAMS)} and the "
@@ -230,10 +233,22 @@ def param_info(name: str) -> ParamInfo:
     return mechanism_param(name)
 
 
-def mechanism_prior(name: str) -> Prior:
+#: A learned term's coefficient: normal about zero, this many times its fitted size.
+LEARNED_PRIOR_SDS = 10.0
+
+
+def mechanism_prior(name: str, info: ParamInfo | None = None) -> Prior:
     """The default prior of a mechanism parameter: uniform over its declared range
-    (log-uniform for a positive, log-scaled one), the range the diagnosis fits it in."""
-    info = param_info(name)
+    (log-uniform for a positive, log-scaled one), the range the diagnosis fits it in.
+    A learned term's coefficient (``info``: its declaration, unbounded) has no physical
+    range: a normal about zero, :data:`LEARNED_PRIOR_SDS` times the size it was fitted
+    at, so it hardly constrains what the data determine."""
+    info = info if info is not None else param_info(name)
+    if info.transform == "affine" and not np.isfinite(info.lower):
+        sd = LEARNED_PRIOR_SDS * abs(float(info.scale))
+        why = f"a learned coefficient: normal, {LEARNED_PRIOR_SDS:g}x its fitted size"
+        table = {"dist": "normal", "mean": 0.0, "sd": sd, "why": why}
+        return parse_prior(name, table, "learned term", info)
     dist = "loguniform" if info.transform == "log" else "uniform"
     table = {"dist": dist, "lower": float(info.lower), "upper": float(info.upper)}
     table["why"] = f"the catalog's range of {info.doc or name}"

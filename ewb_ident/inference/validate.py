@@ -40,6 +40,24 @@ class ValidateError(ValueError):
     """Parameters that cannot be validated (unreadable or incomplete ``fit.json``)."""
 
 
+def load_document(path: str | Path) -> dict[str, Any]:
+    """A ``fit.json`` document.
+
+    Raises
+    ------
+    ValidateError
+        Unreadable file, or not a JSON object.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValidateError(f"{path}: cannot read it as fit.json ({err}); give a fit.json") from err
+    if not isinstance(doc, dict):
+        raise ValidateError(f"{path}: not a JSON object; give the fit.json that `fit` wrote")
+    return doc
+
+
 def load_params(path: str | Path) -> EWBParams:
     """The model parameters of a ``fit.json`` (``params``; per-trace values averaged).
 
@@ -49,11 +67,8 @@ def load_params(path: str | Path) -> EWBParams:
         Unreadable file, or a parameter missing or not a finite number.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValidateError(f"{path}: cannot read it as fit.json ({err}); give a fit.json") from err
-    params = doc.get("params") if isinstance(doc, dict) else None
+    doc = load_document(path)
+    params = doc.get("params")
     if not isinstance(params, dict):
         raise ValidateError(f"{path}: no 'params' object; give the fit.json that `fit` wrote")
     values = {}
@@ -98,6 +113,8 @@ class ValidationResult:
     verdict: str
     words: str
     simulated: dict[str, np.ndarray] = field(repr=False)
+    #: The corrected model's mechanisms and learned terms (empty: the seed chain).
+    mechanisms: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         """The ``validate.json`` document."""
@@ -109,6 +126,7 @@ class ValidationResult:
             "at_noise_floor": self.at_noise_floor,
             "metrics": self.metrics,
             "params": self.params.as_dict(),
+            "mechanisms": list(self.mechanisms),
             "theta0_deg": self.theta0_deg,
             "r_eff_m": self.r_eff_m,
             "thresholds": {
@@ -119,7 +137,9 @@ class ValidationResult:
 
 
 @numerics
-def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> ValidationResult:
+def validate(
+    trace: Trace, params: EWBParams | Mapping[str, float], model: Any = None
+) -> ValidationResult:
     """Simulate ``params`` on ``trace`` from its voltage and score every recorded channel.
 
     Parameters
@@ -128,6 +148,10 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
         A trace with ``voltage_V`` and ``theta_deg`` (the start angle) and any outputs.
     params
         Model parameters (SI), e.g. from :func:`load_params`.
+    model
+        A corrected model (:class:`ewb_ident.diagnosis.corrected.CorrectedModel`: the
+        mechanisms and learned terms of a ``fit --with``/``--with-diagnosis`` fit),
+        simulated instead of the seed chain; ``None``: the seed chain.
     """
     if isinstance(params, Mapping):
         params = EWBParams(**{n: float(params[n]) for n in MODEL_PARAMS})
@@ -138,7 +162,10 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
                 "and starts at the recorded angle; record this channel"
             )
     theta0 = float(np.median(trace["theta_deg"][:5]))
-    sim = simulate_chain(params, trace["voltage_V"], trace.dt, theta0, trace.r_eff_m)
+    if model is None:
+        sim = simulate_chain(params, trace["voltage_V"], trace.dt, theta0, trace.r_eff_m)
+    else:
+        sim = model.simulate(trace, params.as_dict() | {"theta0_deg": theta0})
     sim = {k: np.asarray(v) for k, v in sim.items()}
     metrics: dict[str, dict[str, float | None]] = {}
     for ch in CHANNELS:
@@ -190,4 +217,5 @@ def validate(trace: Trace, params: EWBParams | Mapping[str, float]) -> Validatio
         verdict=verdict,
         words=words,
         simulated=sim,
+        mechanisms=() if model is None else tuple(model.names),
     )

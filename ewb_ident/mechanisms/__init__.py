@@ -15,6 +15,7 @@ from ewb_ident.mechanisms.current_limit import CurrentLimit as CurrentLimit
 from ewb_ident.mechanisms.force_hysteresis import ForceHysteresis as ForceHysteresis
 from ewb_ident.mechanisms.friction_fade import FrictionFade as FrictionFade
 from ewb_ident.mechanisms.friction_speed import FrictionSpeed as FrictionSpeed
+from ewb_ident.mechanisms.learned import PLACES
 from ewb_ident.mechanisms.sensor_delay import SensorDelay as SensorDelay
 from ewb_ident.mechanisms.sensor_offset import SensorOffset as SensorOffset
 from ewb_ident.mechanisms.stiction import Stiction as Stiction
@@ -60,12 +61,19 @@ def mechanism_param(name: str) -> ParamInfo:
     ``"backlash.beta_deg"``, ``"sensor_delay[force_N].delay_s"``), of its catalog form or
     of a flexible form (:meth:`~ewb_ident.mechanisms.base.AbstractMechanism.refinements`).
 
+    A learned term's coefficient (``"learned[force.output].c0"``) is declared in units
+    of its size when the term was distilled (1: the distilled term), which is how a
+    posterior samples it (its size differs from one diagnosis to the next).
+
     Raises
     ------
     KeyError
-        ``name`` names no parameter of a catalog mechanism variant.
+        ``name`` names no parameter of a catalog mechanism variant or learned term.
     """
     variant, _, param = name.rpartition(".")
+    if variant.startswith("learned[") and variant[8:-1] in PLACES and param[1:].isdigit():
+        doc = "a learned term's coefficient over its size when distilled"
+        return ParamInfo(param, "1", "affine", 0.0, scale=1.0, doc=doc)
     for m in variants():
         if m.variant == variant:
             for form in (m, *m.refinements()):

@@ -182,7 +182,10 @@ def build_report(
         _data_section(traces, figures),
         _parameter_section(fit, traces, post),
     ]
-    if ddoc is not None and ddoc.get("verdict") == "found":
+    corrected = ddoc is not None and (
+        ddoc.get("verdict") == "found" or any(not f.get("catalog", True) for f in ddoc["findings"])
+    )
+    if corrected:
         parts.append(_corrected_section(ddoc, post, corrected_posterior, corrected_note))
     parts.append(_fit_section(fit, traces, posterior, figures))
     parts.append("<h2>4. The clamping-force curve</h2>")
@@ -535,7 +538,7 @@ def _corrected_section(
         "<h2>2b. Corrected model: parameters with the missing physics added</h2>",
         "<p>The whole chain refitted from the voltage with "
         + _e(", ".join(aug.get("mechanisms", [])))
-        + " switched on (ewb-ident fit TRACE --with ...). "
+        + " switched on (ewb-ident fit TRACE --with-diagnosis DIR). "
         + how
         + " The baseline column repeats the baseline's values.</p>",
     ]
@@ -543,7 +546,9 @@ def _corrected_section(
     hp = post["params"] if post else {}
     cp = cdoc["params"] if cdoc else {}
     names = [n for n in ("a", "b", "c", "mu", "F_rt") if n in aug["params"]]
-    names += [n for n in aug["params"] if "." in n]
+    # A learned term's coefficients are in its basis's units: its equation, refitted
+    # with intervals, is in the diagnosis section.
+    names += [n for n in aug["params"] if "." in n and not n.startswith("learned[")]
     for n in names:
         v, se = aug["params"][n], aug.get("stderr", {}).get(n)
         b = base.get("params", {}).get(n)

@@ -116,13 +116,16 @@ def corrected_summary(result) -> str:
         b = result.baseline_metrics.get(ch, {}).get("nrmse_pct")
         lines.append(f"   - {ch}: {_fmt(b, 3)} -> {_fmt(m['nrmse_pct'], 3)}")
     lines.append(f"  evidence: dBIC {result.delta_bic:.1f}")
+    for t in result.learned:
+        lines.append(f"  learned term at {t['place']}, refitted: {t['equation']}")
     lines += [f"  warning: {w}" for w in result.warnings]
     return "\n".join(lines)
 
 
 def validation_summary(result, params_label: str) -> str:
     """Plain text of a validation (:class:`ewb_ident.inference.validate.ValidationResult`)."""
-    lines = [f"validation of {params_label} on {result.trace_name}: {result.verdict}"]
+    model = f" (corrected by {', '.join(result.mechanisms)})" if result.mechanisms else ""
+    lines = [f"validation of {params_label}{model} on {result.trace_name}: {result.verdict}"]
     lines.append(f"  {result.words}")
     for ch, m in result.metrics.items():
         if m["rmse"] is None:
