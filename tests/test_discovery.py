@@ -61,6 +61,11 @@ def damped_diagnosis():
     return diagnose(damped_force_trace())
 
 
+@functools.cache
+def pressure_diagnosis():
+    return diagnose(pressure_friction_trace())
+
+
 def test_a_planted_term_is_learned_where_it_acts_and_its_truth_recovered():
     res = damped_diagnosis()
     assert res.verdict == "unexplained"  # located, and no catalog name for it
@@ -93,7 +98,7 @@ def test_the_learned_term_follows_the_contract():
 def test_the_distilled_equation_has_the_planted_form():
     """mu (1 - k F / F_rt): a factor on the friction coefficient, linear in the force,
     its coefficient's 90 % interval holding the truth."""
-    res = diagnose(pressure_friction_trace())
+    res = pressure_diagnosis()
     (top,) = res.findings
     assert top.place == "friction" and top.depends_on == ("force",)
     assert top.equation.startswith("Δμ/μ = ") and top.equation.endswith("·F [1]")
@@ -102,6 +107,22 @@ def test_the_distilled_equation_has_the_planted_form():
     assert term["low_90"] <= truth <= term["high_90"]
     assert term["coef"] == pytest.approx(truth, rel=0.05)
     assert "pad pressure" in top.explanation  # the reading of a known signature
+
+
+def test_parameters_that_depend_on_what_the_trace_cannot_tell_say_so():
+    """With one torque channel a friction law in the force and a torque sensor's
+    nonlinearity fit held-out data about as well, and they imply different mu: its
+    interval spans both (holding the truth) and a note says why. The damper, which no
+    other place explains as well, leaves a, b, c, mu as the fit gives them."""
+    res = pressure_diagnosis()
+    (note,) = [n for n in res.notes if "cannot pin down" in n]
+    assert "mu" in note
+    assert res.findings[0].basis["spread"]["mu"] > 10 * 1e-4
+    mu, se = res.augmented_params["mu"], res.augmented_stderr["mu"]
+    assert abs(mu - 0.35) <= 1.645 * se
+    damped = damped_diagnosis()
+    assert not [n for n in damped.notes if "cannot pin down" in n]
+    assert damped.augmented_stderr["mu"] < 1e-3
 
 
 def test_the_heldout_check_refuses_a_term_that_only_fits_noise():

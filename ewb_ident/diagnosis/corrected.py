@@ -113,6 +113,40 @@ def _learned_doc(spec: LearnedSpec, trace: Trace, f: AugFit) -> dict[str, Any]:
     }
 
 
+#: Parameters whose form spread is named in the notes.
+HEADLINE = ("a", "b", "c", "mu")
+
+
+def with_spread(stderr: Mapping[str, float | None], spread: Mapping[str, float]):
+    """Standard errors with the spread of a learned term's form added in quadrature
+    (a parameter that depends on what the trace cannot pin down is that uncertain)."""
+    out = dict(stderr)
+    for k, v in spread.items():
+        if k in out and out[k] is not None and v > 0:
+            out[k] = float(np.hypot(out[k], v))
+    return out
+
+
+def spread_notes(spread, params, stderr) -> list[str]:
+    """A note naming the headline parameters whose error is mostly the form spread."""
+    big = [
+        f"{k} ±{spread[k]:.3g}"
+        for k in HEADLINE
+        if spread.get(k, 0.0) > 0 and stderr.get(k) and spread[k] > 0.5 * stderr[k]
+    ]
+    if not big:
+        return []
+    one = len(big) == 1
+    return [
+        f"the corrected {', '.join(b.split(' ')[0] for b in big)} "
+        + ("depends" if one else "depend")
+        + " on the form and place of the learned term, which the trace cannot pin down "
+        "(other forms or places fit held-out data about as well): "
+        + ("its standard error includes" if one else "their standard errors include")
+        + f" that spread ({', '.join(big)}, SI)"
+    ]
+
+
 def model_tables(chain_fits: Sequence[AugFit], ok: bool) -> dict[str, dict]:
     """Parameter values and standard errors of the baseline and the corrected chain."""
     if not ok or not chain_fits:
@@ -334,6 +368,7 @@ def fit_corrected(
     except TermError as err:
         raise DiagnoseError(str(err)) from None
     ev = bic_evidence(f1, f0, sigma)
+    spread = {k: max(s.spread.get(k, 0.0) for s in learned) for s in learned for k in s.spread}
     if not f1.converged:
         notes.append("the corrected whole-chain fit did not converge")
     if ev["delta_bic"] > -BIC_THRESHOLD:
@@ -341,7 +376,12 @@ def fit_corrected(
             f"the mechanisms do not improve the whole chain (dBIC {ev['delta_bic']:.1f} > "
             f"-{BIC_THRESHOLD:g}): this trace gives no evidence for them"
         )
-    return corrected_record(trace, f0, f1, data, ev, notes, docs)
+    out = corrected_record(trace, f0, f1, data, ev, notes, docs)
+    if not spread:
+        return out
+    stderr = with_spread(out.stderr, spread)
+    more = spread_notes(spread, out.params, stderr)
+    return replace(out, stderr=stderr, warnings=out.warnings + tuple(more))
 
 
 # ----------------------------------------------------------------------------- elsewhere

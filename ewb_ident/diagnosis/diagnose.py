@@ -61,7 +61,12 @@ from ewb_ident.data.metrics import channel_metrics
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.diagnosis.artefacts import find_artefacts
-from ewb_ident.diagnosis.corrected import corrected_of, model_tables
+from ewb_ident.diagnosis.corrected import (
+    corrected_of,
+    model_tables,
+    spread_notes,
+    with_spread,
+)
 from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, Discovery, discover
 from ewb_ident.diagnosis.findings import (
     closure,
@@ -205,6 +210,11 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         ses, trace, chain, work, added, chain_ev, flagged, stage_before, stage_after
     )
     verdict, notes = _verdict(ses, work, findings, located, unconfirmed, bic_threshold)
+    tables = model_tables(chain.fits, chain.ok)
+    if tables:
+        spread = _form_spread(work, added)
+        tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], spread)
+        notes += spread_notes(spread, tables["augmented_params"], tables["augmented_stderr"])
     timings["total"] = time.perf_counter() - t_start
     return DiagnosisResult(
         trace_name=trace.name,
@@ -232,7 +242,7 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         )
         if chain.ok and len(chain.fits) > 1
         else None,
-        **model_tables(chain.fits, chain.ok),
+        **tables,
     )
 
 
@@ -506,6 +516,18 @@ def _refined_note(plain: _Tried, wider: _Tried) -> str:
         f"{wider[0].variant}: the flexible form (with {', '.join(added)}) fits better than "
         f"the catalog's form (dBIC {wider[0].form_gain_bic:.1f} against it)"
     )
+
+
+def _form_spread(work: _Work, added) -> dict[str, float]:
+    """Per base parameter, the spread of its estimate over the forms and places of the
+    learned terms kept that the trace cannot tell apart (the largest over the terms)."""
+    kept = {m.variant for m in added}
+    out: dict[str, float] = {}
+    for disc, _, _, term in work.discoveries:
+        if term.variant in kept:
+            for k, v in disc.spread.items():
+                out[k] = max(out.get(k, 0.0), v)
+    return out
 
 
 def _fits_of(ses: Session, selected):

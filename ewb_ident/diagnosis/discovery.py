@@ -278,6 +278,9 @@ class Discovery:
     signals: dict[str, Signal] = field(repr=False)
     #: The channels its inputs took from the model rather than the recording.
     model: tuple[str, ...] = ()
+    #: Per base parameter (SI): how far its estimate moves between the terms the trace
+    #: cannot tell apart (:func:`form_spread`).
+    spread: dict[str, float] = field(default_factory=dict)
 
     @property
     def columns(self) -> list[Column]:
@@ -467,6 +470,18 @@ def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
             break
     cols = _item_cols(items, chosen)
     ins, x = d.insample(cols, RIDGES[0])
+    # Forms the held-out data cannot tell from the chosen one: one item swapped for
+    # another whose held-out score differs by less than half the evidence threshold.
+    alts = []
+    for pos in range(len(chosen)):
+        for j in range(len(items)):
+            if j in chosen:
+                continue
+            swap = [*chosen[:pos], j, *chosen[pos + 1 :]]
+            c_alt = _item_cols(items, swap)
+            val = d.heldout(c_alt, RIDGES[0])
+            if d.score(cur, val, d.rho_after(c_alt, RIDGES[0])) < HELDOUT_BIC / 2:
+                alts.append(d.insample(c_alt, RIDGES[0])[1][: d.kb])
     fit = PlaceFit(
         place,
         tuple(str(j) for j in chosen),
@@ -481,7 +496,7 @@ def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
         d.n_folds,
     )
     coef = x[d.kb :] / d.norms[cols] if cols else np.zeros(0)
-    return fit, [items[j] for j in chosen], coef
+    return fit, [items[j] for j in chosen], coef, x[: d.kb], alts
 
 
 def _item_cols(items, chosen) -> list[int]:
@@ -550,12 +565,27 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
             sig,
             model,
         )
-    items = library(sig, pf.groups)
-    groups_l = {f"item{j}": list(it) for j, it in enumerate(items)}
-    dl = _design(ses, fits_of(stages), pf.place, groups_l, fold, stage)
-    assert dl is not None  # the same place built a design above
-    dfit, chosen, x = distil(dl, items, pf, pf.place)
+
+    def distilled(pf, sig, stages):
+        items = library(sig, pf.groups)
+        groups_l = {f"item{j}": list(it) for j, it in enumerate(items)}
+        fit = fits_of(stages)
+        dl = _design(ses, fit, pf.place, groups_l, fold, stage)
+        assert dl is not None  # the same place built a design above
+        dfit, chosen, x, step, alts = distil(dl, items, pf, pf.place)
+        return dfit, chosen, x, fit, step, [estimates(fit, a) for a in alts]
+
+    dfit, chosen, x, fit, step, others = distilled(pf, sig, stages)
+    best = estimates(fit, step, free_only=False)
     coef = tuple(float(c) for c in x)
+    # Other estimates of the stage's parameters: the distilled forms about as good on
+    # held-out data, and the distilled term of every other place about as good (the
+    # note "the trace cannot tell").
+    for r in results[1:]:
+        if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain:
+            _, _, _, fit_o, step_o, _ = distilled(r[0], r[3], r[4])
+            others.append(estimates(fit_o, step_o))
+    spread = form_spread(best, others)
     return Discovery(
         stage,
         pf.place,
@@ -568,7 +598,35 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         tuple(r[0] for r in results),
         sig,
         model,
+        spread,
     )
+
+
+#: Places whose held-out gain is at least this share of the best's explain the
+#: mismatch about as well: the trace cannot tell them apart.
+CLOSE = 0.9
+
+
+def estimates(fit, step: np.ndarray, free_only: bool = True) -> dict[str, float]:
+    """The fit's free base parameters (SI) after the linearised step ``step`` (in the
+    fit's optimiser coordinates, its free parameters first); with ``free_only`` False,
+    its held ones too, at their values."""
+    from ewb_ident.model.params import PARAMS
+
+    out = {} if free_only else {k: float(v) for k, v in fit.values.items() if k in PARAMS}
+    for j, name in enumerate(fit.problem.free):
+        if name in PARAMS and j < step.size:
+            dp = float(PARAMS[name].dp_du(float(fit.u[j]))) * float(step[j])
+            out[name] = float(fit.values[name]) + dp
+    return out
+
+
+def form_spread(best: Mapping[str, float], others: Sequence[Mapping[str, float]]):
+    """Per base parameter, the largest distance of another term's estimate (of the
+    parameters its fit frees) from the chosen term's (free or held at its stages' fit):
+    how much the parameter depends on the term's form and place, which the trace cannot
+    pin down."""
+    return {k: max((abs(o[k] - v) for o in others if k in o), default=0.0) for k, v in best.items()}
 
 
 def _specificity(place: str) -> int:
@@ -613,12 +671,16 @@ class LearnedSpec:
     refs: dict[str, float]
     model: tuple[str, ...]
     coef: tuple[float, ...]
+    #: Per base parameter (SI), how far its estimate moves between the forms and places
+    #: of the term the diagnosed trace could not tell apart (:func:`form_spread`).
+    spread: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def of(cls, disc: Discovery, coef: Sequence[float]) -> LearnedSpec:
         refs = {n: disc.signals[n].ref for c in disc.columns for n in _inputs_of(c)}
         terms = tuple(tuple(Column(c.label, c.signal, None, c.form) for c in t) for t in disc.terms)
-        return cls(disc.place, terms, refs, disc.model, tuple(float(c) for c in coef))
+        coef = tuple(float(c) for c in coef)
+        return cls(disc.place, terms, refs, disc.model, coef, dict(disc.spread))
 
     @property
     def columns(self) -> list[Column]:
@@ -638,6 +700,7 @@ class LearnedSpec:
             "refs": dict(self.refs),
             "model_channels": list(self.model),
             "coef": list(self.coef),
+            "spread": dict(self.spread),
         }
 
     @classmethod
@@ -660,6 +723,7 @@ class LearnedSpec:
                 {str(k): float(v) for k, v in doc["refs"].items()},
                 tuple(str(c) for c in doc["model_channels"]),
                 tuple(float(c) for c in doc["coef"]),
+                {str(k): float(v) for k, v in (doc.get("spread") or {}).items()},
             )
             for c in spec.columns:
                 if c.form[0] != "one":
@@ -674,7 +738,8 @@ class LearnedSpec:
                 f"{where}: place {spec.place!r} or its {len(spec.coef)} coefficients do not "
                 f"match its {len(spec.columns)} columns; use the 'basis' diagnose wrote"
             )
-        if not all(np.isfinite(spec.coef)) or not all(np.isfinite(list(spec.refs.values()))):
+        numbers = [*spec.coef, *spec.refs.values(), *spec.spread.values()]
+        if not all(np.isfinite(numbers)):
             raise TermError(f"{where}: a coefficient or size is not a finite number")
         return spec
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.discovery import (
+    CLOSE,
     Discovery,
     LearnedSpec,
     basis_matrix,
@@ -255,7 +256,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
             + ", explains less of it on held-out data."
         )
     others = [p for p in disc.places if p.place != disc.place and p.groups]
-    close = [p.place for p in others if p.rank_gain >= 0.9 * disc.learned.rank_gain]
+    close = [p.place for p in others if p.rank_gain >= CLOSE * disc.learned.rank_gain]
     if close:
         text += f" A term at {_and(close)} explains it about as well: the trace cannot tell."
     heldout = {
