@@ -6,7 +6,7 @@ Every public function computes in float64 whatever JAX's global setting
 >>> import ewb_ident as ei
 >>> trace = ei.read_trace("datasets/steps_200hz.csv")
 >>> result = ei.fit(trace)              # whole chain from voltage
->>> result.params[0].a, result.stderr["a"], result.metrics["force_N"]
+>>> result.values["a"], result.stderr["a"], result.metrics["force_N"]
 >>> posterior = ei.sample(trace)      # emcee posterior of a, b, c, mu, ...
 >>> diagnosis = ei.diagnose(trace)    # where the model misses, and what physics
 
@@ -96,6 +96,12 @@ _PUBLIC = {
     "TraceError": "data.trace",
     "read_trace": "data.readers",
     "write_trace": "data.writers",
+    "fit_corrected": "diagnosis.corrected",
+    "CorrectedFit": "diagnosis.corrected",
+    "CorrectedModel": "diagnosis.corrected",
+    "LearnedSpec": "diagnosis.discovery",
+    "validate": "inference.validate",
+    "ValidationResult": "inference.validate",
 }
 
 __all__ = sorted(_PUBLIC)
@@ -106,7 +112,11 @@ if TYPE_CHECKING:
     from ewb_ident.data.trace import Trace as Trace
     from ewb_ident.data.trace import TraceError as TraceError
     from ewb_ident.data.writers import write_trace as write_trace
+    from ewb_ident.diagnosis.corrected import CorrectedFit as CorrectedFit
+    from ewb_ident.diagnosis.corrected import CorrectedModel as CorrectedModel
+    from ewb_ident.diagnosis.corrected import fit_corrected as fit_corrected
     from ewb_ident.diagnosis.diagnose import diagnose as diagnose
+    from ewb_ident.diagnosis.discovery import LearnedSpec as LearnedSpec
     from ewb_ident.diagnosis.result import DiagnosisResult as DiagnosisResult
     from ewb_ident.diagnosis.session import DiagnoseError as DiagnoseError
     from ewb_ident.inference.fit_result import FitResult as FitResult
@@ -115,6 +125,8 @@ if TYPE_CHECKING:
     from ewb_ident.inference.posterior import sample as sample
     from ewb_ident.inference.posterior_result import PosteriorResult as PosteriorResult
     from ewb_ident.inference.problem import FitError as FitError
+    from ewb_ident.inference.validate import ValidationResult as ValidationResult
+    from ewb_ident.inference.validate import validate as validate
     from ewb_ident.model.integrate import Integrator as Integrator
     from ewb_ident.model.integrate import NumericalWarning as NumericalWarning
     from ewb_ident.model.integrate import simulate_chain as simulate_chain
@@ -122,6 +134,11 @@ if TYPE_CHECKING:
     from ewb_ident.model.params import PARAMS as PARAMS
     from ewb_ident.model.params import SEED as SEED
     from ewb_ident.model.params import EWBParams as EWBParams
+
+
+def __dir__() -> list[str]:
+    """The public names (imported on first use) and the version."""
+    return sorted([*__all__, "__version__", "SMALL_LOOP_BYTES", "XLA_SMALL_LOOP_BYTES"])
 
 
 def __getattr__(name: str) -> Any:

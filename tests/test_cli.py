@@ -165,3 +165,20 @@ def test_simulate_refuses_unknown_effect(tmp_path):
     out = runner.invoke(app, ["simulate", str(tmp_path / "x.csv"), "--effect", "gremlins"])
     assert out.exit_code == 2 and "unknown effect 'gremlins'" in out.output
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_a_semicolon_decimal_comma_csv_is_read_and_said_once(tmp_path):
+    """An Excel export from much of Europe is read (not refused), and the command says
+    once how it read it."""
+    lines = (DATA / "steps_200hz.csv").read_text().splitlines()
+    eu = [lines[0].replace(",", ";")]
+    eu += [";".join(c.replace(".", ",") for c in line.split(",")) for line in lines[1:]]
+    (tmp_path / "eu.csv").write_text("\n".join(eu) + "\n")
+    out = runner.invoke(app, ["fit", str(tmp_path / "eu.csv"), "--out", str(tmp_path / "f")])
+    assert out.exit_code == 0, out.output
+    assert out.output.count("read as ';'-separated, decimal comma") == 1
+    ref = runner.invoke(app, ["fit", str(DATA / "steps_200hz.csv"), "--out", str(tmp_path / "g")])
+    assert ref.exit_code == 0
+    a = json.loads((tmp_path / "f" / "fit.json").read_text())["params"]
+    b = json.loads((tmp_path / "g" / "fit.json").read_text())["params"]
+    assert a == b

@@ -152,3 +152,23 @@ def test_the_facade_resolves_every_public_name():
     for name in ewb_ident.__all__:
         module = __import__(static[name], fromlist=[name])
         assert getattr(ewb_ident, name) is getattr(module, name), name
+
+
+def test_the_python_examples_of_the_documentation_run():
+    """Every ```python block of docs/python-api.md runs as written, in order, from the
+    repository's root (the datasets it names are shipped)."""
+    import os
+    import re
+
+    root = PACKAGE.parent
+    text = (root / "docs" / "python-api.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert len(blocks) >= 3
+    here = os.getcwd()
+    os.chdir(root)
+    try:
+        scope: dict = {}
+        for k, code in enumerate(blocks):
+            exec(compile(code, f"docs/python-api.md block {k + 1}", "exec"), scope)
+    finally:
+        os.chdir(here)

@@ -211,3 +211,28 @@ def test_phase_shading_draws_the_pixels_of_one_axvspan_per_run():
     assert len(set(labels)) == names.size and np.sum(labels[1:] != labels[:-1]) > 100
     np.testing.assert_allclose(limits, want_limits, rtol=1e-12)  # a span's xmin + width
     assert pixels == want_pixels
+
+
+def test_report_takes_the_samplers_options_and_logs_progress_without_a_terminal(tmp_path):
+    """`report --steps/--min-ess` reach the sampler (a bad value is refused before any
+    work, in the option's spelling); in a batch log (stderr not a terminal) the MCMC
+    and the diagnosis say how far they are, line by line."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "ewb_ident", "report", str(DATA / "staircase_200hz.csv")]
+    bad = subprocess.run(
+        [*cmd, "--steps", "5", "--out", str(tmp_path / "bad")], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "--steps must be an integer >= 10" in bad.stderr
+    assert not (tmp_path / "bad").exists()
+    proc = subprocess.run(
+        [*cmd, "--stage", "force", "--steps", "300", "--min-ess", "50",
+         "--out", str(tmp_path / "r")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode in (0, 3), proc.stderr
+    assert "sampling: " in proc.stderr and " steps (" in proc.stderr
+    assert "diagnosing: baseline fits of every stage" in proc.stderr
+    page = (tmp_path / "r" / "index.html").read_text()
+    assert "2. Parameters" in page

@@ -131,4 +131,3 @@ def _exit_now(done: SystemExit) -> None:
     except (OSError, ValueError):  # a closed or broken pipe: let Python report it
         raise done from None
     os._exit(code)
-

@@ -92,8 +92,8 @@ def check_out(out: Path, *, folder: bool = True) -> None:
 
 class Status:
     """A one-line status on a terminal's stderr (``diagnose``, ``report``): what the
-    long computation is doing now and for how long; silent when stderr is not a
-    terminal (scripts, CI)."""
+    long computation is doing now and for how long; when stderr is not a terminal (a
+    batch log), one line per step."""
 
     def __init__(self, what: str):
         self.what = what
@@ -104,7 +104,11 @@ class Status:
 
         self.t0 = time.perf_counter()
         if not sys.stderr.isatty():
-            return lambda text: None
+
+            def line(text: str) -> None:
+                typer.echo(f"{self.what}: {text} ({time.perf_counter() - self.t0:.0f} s)", err=True)
+
+            return line
         from rich.console import Console
 
         self.live = Console(stderr=True).status(self.what)
@@ -118,6 +122,40 @@ class Status:
     def __exit__(self, *exc) -> None:
         if self.live is not None:
             self.live.stop()
+
+
+def progress_bar(no_progress: bool = False):
+    """A progress bar on a terminal's stderr (elsewhere a line at every tenth of the
+    steps, for a batch log), and the callback that moves it."""
+    if no_progress:
+        return None, None
+    if not sys.stderr.isatty():
+        import time
+
+        t0, said = time.perf_counter(), [-1]
+
+        def lines(done: int, total: int) -> None:
+            tenth = 10 * done // max(total, 1)
+            if tenth > said[0]:
+                said[0] = tenth
+                typer.echo(
+                    f"sampling: {done}/{total} steps ({time.perf_counter() - t0:.0f} s)", err=True
+                )
+
+        return None, lines
+    from rich.console import Console
+    from rich.progress import Progress
+
+    bar = Progress(console=Console(stderr=True), transient=True)
+    task = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal task
+        if task is None:
+            task = bar.add_task("sampling", total=total)
+        bar.update(task, completed=done, total=total)
+
+    return bar, progress
 
 
 def name_list(text: str | None) -> list[str] | None:
@@ -156,6 +194,8 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
             nan_policy="interpolate" if fill_gaps else "raise",
             check_units=not no_unit_check,
         )
+        if tr.sidecar.get("_csv_dialect"):
+            typer.echo(f"{p}: read as {tr.sidecar['_csv_dialect']}", err=True)
         if r_eff is not None:
             side = dict(tr.sidecar) | {"r_eff_m": float(r_eff), "_r_eff_source": "--r-eff"}
             tr = dataclasses.replace(tr, sidecar=side)

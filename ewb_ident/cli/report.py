@@ -20,6 +20,7 @@ from ewb_ident.cli.options import (
     check_out,
     command_line,
     fail,
+    progress_bar,
     read_traces,
 )
 
@@ -37,6 +38,12 @@ def report(
         typer.Option("--diagnose/--no-diagnose", help="Look for physics the model leaves out."),
     ] = True,
     seed: Annotated[int, typer.Option(help="Seed of the MCMC.")] = 0,
+    steps: Annotated[
+        int, typer.Option(help="MCMC steps per ensemble planned (as for sample).")
+    ] = 2000,
+    min_ess: Annotated[float, typer.Option(help="ESS every parameter needs (as for sample).")] = (
+        400.0
+    ),
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
@@ -47,8 +54,14 @@ def report(
     diagnostics, and the diagnosis of missing physics."""
     check_out(out)
     from ewb_ident.inference.least_squares import fit as run_fit
+    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
     from ewb_ident.reporting.html import build_report, write_report
 
+    sampler = dict(n_steps=steps, min_ess=min_ess, seed=seed)
+    try:  # before the traces are read, in the options' own spelling
+        SamplerSettings(**sampler).check(names={"n_steps": "--steps", "min_ess": "--min-ess"})
+    except SampleError as err:
+        fail(str(err))
     post = diag = None
     try:
         trs = read_traces(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
@@ -57,7 +70,14 @@ def report(
             from ewb_ident.inference.posterior import sample as run_sample
 
             typer.echo("sampling the posterior (emcee, two ensembles) ...")
-            post = run_sample(trs, stage=stage, seed=seed)
+            bar, progress = progress_bar()
+            if bar is not None:
+                bar.start()
+            try:
+                post = run_sample(trs, stage=stage, progress=progress, **sampler)
+            finally:
+                if bar is not None:
+                    bar.stop()
         if diagnosis and len(trs) == 1:
             from ewb_ident.diagnosis.diagnose import diagnose as run_diagnose
             from ewb_ident.diagnosis.session import DiagnoseError
@@ -72,7 +92,7 @@ def report(
             typer.echo("no diagnosis: it looks at one trace at a time (run `diagnose` on each)")
     except bad_input_errors() as err:
         fail(str(err))
-    cpost, cnote = _corrected_posterior(trs, diag, posterior, stage, seed)
+    cpost, cnote = _corrected_posterior(trs, diag, posterior, stage, sampler)
     page, figures = build_report(
         trs,
         result,
@@ -93,7 +113,7 @@ def report(
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
-def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
+def _corrected_posterior(trs, diag, posterior: bool, stage: str, sampler: dict):
     """The corrected model's posterior when the diagnosis found catalog physics or a
     learned term, else (None, why not); None, None when there is nothing to correct."""
     if diag is None or diag.corrected is None:
@@ -109,7 +129,14 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, seed: int):
     mechs = diag.corrected.mechanisms
     typer.echo(f"sampling the posterior of the corrected model ({', '.join(mechs)}) ...")
     try:
-        return sample_corrected(trs[0], diag.corrected, seed=seed), None
+        bar, progress = progress_bar()
+        if bar is not None:
+            bar.start()
+        try:
+            return sample_corrected(trs[0], diag.corrected, progress=progress, **sampler), None
+        finally:
+            if bar is not None:
+                bar.stop()
     except (DiagnoseError, SampleError) as err:
         typer.echo(f"no corrected posterior: {err}")
         return None, f"its posterior could not be run ({err})"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -26,6 +25,7 @@ from ewb_ident.cli.options import (
     fail,
     mechanism_option,
     name_list,
+    progress_bar,
     read_traces,
 )
 
@@ -134,7 +134,7 @@ def sample(
     stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
     if isinstance(stages, tuple) and len(stages) == 1:
         stages = stages[0]
-    bar, progress = _progress_bar(no_progress)
+    bar, progress = progress_bar(no_progress)
     t0 = time.perf_counter()
     try:
         trs = read_traces(
@@ -182,25 +182,6 @@ _OPTION_NAMES = {
     "seed": "--seed",
 }
 """The options of :func:`sample` named by the sampler settings they set."""
-
-
-def _progress_bar(no_progress: bool):
-    """A progress bar on a terminal's stderr (else none), and the callback that moves it."""
-    if no_progress or not sys.stderr.isatty():
-        return None, None
-    from rich.console import Console
-    from rich.progress import Progress
-
-    bar = Progress(console=Console(stderr=True), transient=True)
-    task = None
-
-    def progress(done: int, total: int) -> None:
-        nonlocal task
-        if task is None:
-            task = bar.add_task("sampling", total=total)
-        bar.update(task, completed=done, total=total)
-
-    return bar, progress
 
 
 def _write(out, result, traces) -> None:

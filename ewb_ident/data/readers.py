@@ -4,6 +4,7 @@ missing samples; then validation."""
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -35,6 +36,36 @@ class _Raw:
 
     names: list[str]
     values: dict[str, Any]
+    #: How a CSV was read when not comma-separated with decimal points (e.g. "';'-
+    #: separated, decimal comma"), else "".
+    dialect: str = ""
+
+
+#: A cell written with a decimal comma (``-1,25``, ``3,5E-3``, ``1.234,5``).
+_DECIMAL_COMMA = re.compile(r"\s*[+-]?(?:\d{1,3}(?:\.\d{3})+|\d*),\d+(?:[eE][+-]?\d+)?\s*")
+
+
+def _dialect(text: str) -> tuple[str, bool]:
+    """The separator of a CSV text (``,``, ``;`` or a tab, from its header) and whether
+    its numbers use a decimal comma (only possible when the separator is not a comma)."""
+    first = text.split("\n", 1)[0]
+    delim = ","
+    if ";" in first and first.count(";") >= first.count(","):
+        delim = ";"
+    elif "\t" in first and first.count("\t") >= first.count(","):
+        delim = "\t"
+    if delim == ",":
+        return delim, False
+    head = text.split("\n", 200)[1:200]
+    comma = any(_DECIMAL_COMMA.fullmatch(c) for line in head for c in line.split(delim))
+    return delim, comma
+
+
+def _decimal_point(cell: str) -> str:
+    """A decimal-comma number written with a point (thousands points dropped)."""
+    if not _DECIMAL_COMMA.fullmatch(cell):
+        return cell
+    return cell.replace(".", "").replace(",", ".")
 
 
 def _check_header(names: list[str], label: str) -> None:
@@ -97,7 +128,9 @@ def _read_csv(path: Path, label: str) -> _Raw:
         )
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
-            rows = list(csv.reader(handle))
+            text = handle.read()
+        delim, comma = _dialect(text)
+        rows = list(csv.reader(io.StringIO(text, newline=""), delimiter=delim))
     except UnicodeDecodeError:
         raise_trace_error(label, "not a UTF-8 text file", "export the log as a comma-separated CSV")
     except csv.Error as err:
@@ -129,9 +162,15 @@ def _read_csv(path: Path, label: str) -> _Raw:
                 "every row needs one value per column (a missing value is an empty cell)",
                 row=i,
             )
+    if comma:
+        body = [[_decimal_point(c) for c in fields] for fields in body]
     columns = list(zip(*body, strict=True))
     values = {name: np.array(columns[j], dtype=object) for j, name in enumerate(names)}
-    return _Raw(names, values)
+    dialect = ""
+    if delim != "," or comma:
+        sep = {";": "';'-separated", "\t": "tab-separated", ",": "comma-separated"}[delim]
+        dialect = sep + (", decimal comma" if comma else "")
+    return _Raw(names, values, dialect)
 
 
 def _read_parquet(path: Path, label: str) -> _Raw:
@@ -485,6 +524,7 @@ def read_trace(
         ("_ignored_columns", ignored),
         ("_unmatched_mapping", unmatched),
         ("_filled", filled),
+        ("_csv_dialect", raw.dialect),
     ):
         if value:
             sidecar[key] = value

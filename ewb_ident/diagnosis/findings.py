@@ -105,7 +105,9 @@ def _phases_of(stage: str, flagged: Sequence[Mismatch], stages: Sequence[str]) -
 
 def _and(items: Sequence[str]) -> str:
     items = list(items)
-    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+    if len(items) < 2:
+        return "".join(items)
+    return ", ".join(items[:-1]) + " and " + items[-1]
 
 
 def _metric_words(ch: str, before, after) -> str:
@@ -241,7 +243,8 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     )
     text = (
         f"the {STAGE_WORDS[stage]} misses something no catalog mechanism explains ({where}). "
-        f"A term learned at {disc.place} ({info.words}) depending on {_and(deps)} "
+        f"A term learned at {disc.place} ({info.words}) depending on "
+        f"{_and(deps) or 'no signal (a constant)'} "
         f"generalises: on held-out data ({disc.method}) it lowers the residual by "
         f"{ho.improvement_pct:.0f} % ({100 * min(ho.share, 1.0):.0f} % of the excess over "
         f"the noise). Distilled: {equation} (coefficients: {coefs})"
