@@ -107,6 +107,13 @@ def test_the_distilled_equation_has_the_planted_form():
     assert term["low_90"] <= truth <= term["high_90"]
     assert term["coef"] == pytest.approx(truth, rel=0.05)
     assert "pad pressure" in top.explanation  # the reading of a known signature
+    # One apply: the torque rises with the force, so the trace cannot tell them apart,
+    # and the finding says so (the damper's piston speed has no such twin).
+    assert top.equivalents == ("torque",)
+    assert "or on the brake torque, which moves with it here" in top.explanation
+    doc = json.loads(json_text(res.to_json()))
+    assert doc["findings"][0]["depends_on_equivalent"] == ["torque"]
+    assert damped_diagnosis().findings[0].equivalents == ()
 
 
 def test_parameters_that_depend_on_what_the_trace_cannot_tell_say_so():

@@ -229,6 +229,9 @@ class PlaceFit:
     #: Folds where the term is consistent (:meth:`Design.consistent`), of how many.
     folds_improved: int = 0
     n_folds: int = 0
+    #: Input groups that, put in place of a chosen one, fit held-out data about as well
+    #: (held-out score within half the evidence threshold): the trace cannot tell them.
+    ties: tuple[str, ...] = ()
 
     @property
     def rank_gain(self) -> float:
@@ -293,6 +296,18 @@ class Discovery:
             for s in c.signal.split("*"):
                 if s != "constant" and s not in out:
                     out.append(s)
+        return tuple(out)
+
+    @property
+    def equivalents(self) -> tuple[str, ...]:
+        """Signals the trace cannot tell from those the term depends on: put in place of
+        one of its inputs, they fit held-out data about as well (they move together in
+        this trace)."""
+        out: list[str] = []
+        for g in self.learned.ties:
+            for name in g.partition("@")[0].split("*"):
+                if name not in ("constant", *self.depends_on, *out):
+                    out.append(name)
         return tuple(out)
 
     def equation(self, coef: Sequence[float] | None = None) -> str:
@@ -395,6 +410,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
     base_in, _ = d.insample([], 0.0)
     excess = max(base_ho - d.noise_rows, 0.0)
     chosen: list[str] = []
+    ties: list[str] = []
     cur = base_ho
     usable = [g for g in groups if _column_index(d, groups, {g})]
     own = sensor_signal(place)
@@ -425,6 +441,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
         if d.score(cur, best[0], rho) > -HELDOUT_BIC / 2:
             break
         chosen.append(best[1])
+        ties += [g for v, g in tried if g != best[1] and d.score(best[0], v, rho) < HELDOUT_BIC / 2]
         cur = best[0]
     idx = _column_index(d, groups, set(chosen))
     _, lam = d.best_heldout(idx)
@@ -442,6 +459,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
         stage_gain,
         d.consistent(idx, lam),
         d.n_folds,
+        tuple(dict.fromkeys(g for g in ties if g not in chosen)),
     )
 
 

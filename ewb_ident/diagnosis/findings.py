@@ -103,11 +103,11 @@ def _phases_of(stage: str, flagged: Sequence[Mismatch], stages: Sequence[str]) -
     return tuple(p for p in PHASES if p in ph)
 
 
-def _and(items: Sequence[str]) -> str:
+def _and(items: Sequence[str], word: str = "and") -> str:
     items = list(items)
     if len(items) < 2:
         return "".join(items)
-    return ", ".join(items[:-1]) + " and " + items[-1]
+    return ", ".join(items[:-1]) + f" {word} " + items[-1]
 
 
 def _metric_words(ch: str, before, after) -> str:
@@ -218,6 +218,8 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     phases = _phases_of(stage, flagged, disc.stages)
     where = f"{stage} stage" + (f", {_and(phases)}" if phases else "")
     deps = [disc.signals[d].words if d in disc.signals else d for d in disc.depends_on]
+    same = [disc.signals[d].words if d in disc.signals else d for d in disc.equivalents]
+    moves = "which moves" if len(same) == 1 else "which move"
     ch = MAIN_CHANNEL[stage]
     mw = _metric_words(ch, before, after)
     ho = disc.distilled
@@ -244,7 +246,13 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     text = (
         f"the {STAGE_WORDS[stage]} misses something no catalog mechanism explains ({where}). "
         f"A term learned at {disc.place} ({info.words}) depending on "
-        f"{_and(deps) or 'no signal (a constant)'} "
+        f"{_and(deps) or 'no signal (a constant)'}"
+        + (
+            f" (or on {_and(same, 'or')}, {moves} with it here: the trace cannot tell)"
+            if same
+            else ""
+        )
+        + " "
         f"generalises: on held-out data ({disc.method}) it lowers the residual by "
         f"{ho.improvement_pct:.0f} % ({100 * min(ho.share, 1.0):.0f} % of the excess over "
         f"the noise). Distilled: {equation} (coefficients: {coefs})"
@@ -285,6 +293,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
         metrics_after=after,
         phases=phases,
         depends_on=disc.depends_on,
+        equivalents=disc.equivalents,
         catalog=False,
         alternatives=tuple(rivals),
         place=disc.place,

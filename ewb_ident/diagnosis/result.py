@@ -79,6 +79,8 @@ class Finding:
     metrics_after: dict[str, dict[str, float | None]]
     phases: tuple[str, ...] = ()
     depends_on: tuple[str, ...] = ()
+    #: Signals the trace cannot tell from those of ``depends_on`` (a learned term's).
+    equivalents: tuple[str, ...] = ()
     catalog: bool = True
     alternatives: tuple[tuple[str, float], ...] = ()
     #: The mechanism's flexible form (``"drift"``, ``"spring"``, ...), ``""`` for the
@@ -135,6 +137,7 @@ class Finding:
             ]
             out["reading"] = self.reading or None
             out["basis"] = self.basis
+            out["depends_on_equivalent"] = list(self.equivalents)
         return out
 
 
