@@ -149,6 +149,12 @@ def test_report_command_writes_a_page(tmp_path):
     assert out.exit_code == 0, out.output
     page = (tmp_path / "index.html").read_text()
     assert "2. Parameters" in page and "4. The clamping-force curve" in page
+    # The terminal output ends with a, b, c, mu and their 90 % intervals, in mm for a, c.
+    assert "a, b, c, mu with 90 % intervals:" in out.output
+    rows = [line.split() for line in out.output.splitlines() if line.startswith("  ")]
+    a_row = next(r for r in rows if r[:2] == ["a", "baseline"])
+    assert "mm" in a_row and 0.3 < float(a_row[2]) < 1.5  # a in mm, not m
+    assert any(r[:2] == ["mu", "baseline"] for r in rows)
 
 
 def test_report_renders_the_posterior_section():

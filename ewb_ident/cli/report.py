@@ -56,6 +56,7 @@ def report(
     from ewb_ident.inference.least_squares import fit as run_fit
     from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
     from ewb_ident.reporting.html import build_report, write_report
+    from ewb_ident.reporting.summaries import headline
 
     sampler = dict(n_steps=steps, min_ess=min_ess, seed=seed)
     try:  # before the traces are read, in the options' own spelling
@@ -105,6 +106,7 @@ def report(
     path = write_report(out, page, figures)
     if diag is not None:
         typer.echo(diag.summary())
+    typer.echo(headline(result, post, diag, cpost))
     typer.echo(f"wrote {path} ({len(figures)} figures)")
     if result.status != "ok" or any(p is not None and not p.converged for p in (post, cpost)):
         typer.echo(

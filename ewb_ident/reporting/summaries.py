@@ -136,3 +136,55 @@ def validation_summary(result, params_label: str) -> str:
             f"% error {_fmt(m['percent_error'], 3)}  {_fmt(m['noise_ratio'], 3)}x noise"
         )
     return "\n".join(lines)
+
+
+#: The parameters the report's terminal output ends with.
+HEADLINE = ("a", "b", "c", "mu")
+
+
+def headline(result: FitResult, posterior=None, diagnosis=None, corrected_posterior=None) -> str:
+    """a, b, c, mu with their 90 % intervals: the baseline fit's and, when the diagnosis
+    corrected the model, the corrected one's (MCMC HDIs where a posterior ran, else the
+    estimate ± 1.645 standard errors), in the report's units."""
+    from ewb_ident.reporting.style import SHOWN_UNITS
+
+    rows = [("baseline", result.values, result.stderr, posterior)]
+    if diagnosis is not None and diagnosis.augmented_params and diagnosis.findings:
+        rows.append(
+            (
+                "corrected",
+                diagnosis.augmented_params,
+                diagnosis.augmented_stderr,
+                corrected_posterior,
+            )
+        )
+    # A corrected parameter whose value depends on the learned term's form keeps the
+    # interval that includes that spread (the MCMC's is conditional on the form).
+    spread = {
+        k: v
+        for f in (diagnosis.findings if diagnosis is not None else ())
+        for k, v in (f.basis.get("spread") or {}).items()
+        if v > 0
+    }
+    lines = ["a, b, c, mu with 90 % intervals:"]
+    for name in HEADLINE:
+        unit, k = SHOWN_UNITS.get(PARAMS[name].unit, (PARAMS[name].unit, 1.0))
+        for model, values, stderr, post in rows:
+            v, se = values.get(name), stderr.get(name)
+            if v is None:
+                continue
+            stats = post.stats.get(name, {}) if post is not None else {}
+            if model == "corrected" and name in spread and se is not None:
+                lo, hi, how = v - 1.645 * se, v + 1.645 * se, "± 1.645 s.e., form spread in"
+            elif stats.get("source", "posterior") == "posterior" and "hdi_low" in stats:
+                lo, hi, how = stats["hdi_low"], stats["hdi_high"], "MCMC"
+            elif se is not None:
+                lo, hi, how = v - 1.645 * se, v + 1.645 * se, "± 1.645 s.e."
+            else:
+                lo = hi = None
+                how = "held, not estimated"
+            interval = "-" if lo is None else f"{_fmt(lo * k)} … {_fmt(hi * k)}"
+            lines.append(
+                f"  {name:<3}{model:<10}{_fmt(v * k):>10}  {interval:<22} {unit:<3} ({how})"
+            )
+    return "\n".join(lines)
