@@ -176,3 +176,39 @@ def test_a_prior_for_an_unknown_mechanism_parameter_is_refused():
 
     with pytest.raises(PriorError, match=r"\[backlash.width\]: unknown parameter"):
         load_priors({"backlash.width": {"dist": "uniform", "lower": 0.0, "upper": 1.0}})
+
+
+@pytest.mark.parametrize("name, mechanism", [("force_hysteresis", "force_hysteresis"),
+                                             ("friction_speed", "friction_speed")])  # fmt: skip
+def test_validate_simulates_the_corrected_model_of_a_fit(tmp_path, name, mechanism):
+    """validate of a `fit --with` fit.json simulates its mechanisms (not the seed chain):
+    on the fitted trace itself it reproduces the corrected fit's errors (from the recorded
+    start angle), and names what
+    it simulated; a fit.json whose mechanism parameters fit none of its forms is refused
+    in one line."""
+    trace = str(DATA / f"{name}.csv")
+    fit = runner.invoke(app, ["fit", trace, "--with", mechanism, "--out", str(tmp_path / "f")])
+    assert fit.exit_code == 0, fit.output
+    doc = json.loads((tmp_path / "f" / "fit.json").read_text())
+    out = runner.invoke(
+        app, ["validate", trace, "--params", str(tmp_path / "f" / "fit.json"),
+              "--out", str(tmp_path / "v")],
+    )  # fmt: skip
+    assert out.exit_code == 0, out.output
+    val = json.loads((tmp_path / "v" / "validate.json").read_text())
+    assert val["mechanisms"] == doc["mechanisms"]
+    # The same errors as the corrected fit (validate starts at the recorded angle, not
+    # the fitted one), not the baseline's.
+    for ch, m in doc["metrics"].items():
+        got, base = val["metrics"][ch]["nrmse_pct"], doc["baseline"]["metrics"][ch]["nrmse_pct"]
+        assert got == pytest.approx(m["nrmse_pct"], rel=0.02), ch
+        if abs(m["nrmse_pct"] - base) > 0.1 * base:  # a channel the mechanism changes
+            assert abs(got - m["nrmse_pct"]) < abs(got - base), ch
+    bad = dict(doc, params={k: v for k, v in doc["params"].items() if "." not in k})
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    out = runner.invoke(
+        app, ["validate", trace, "--params", str(tmp_path / "bad.json"),
+              "--out", str(tmp_path / "w")],
+    )  # fmt: skip
+    assert out.exit_code == 2 and "not those of any of its forms" in out.output
+    assert not (tmp_path / "w").exists()
