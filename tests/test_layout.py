@@ -172,3 +172,22 @@ def test_the_python_examples_of_the_documentation_run():
             exec(compile(code, f"docs/python-api.md block {k + 1}", "exec"), scope)
     finally:
         os.chdir(here)
+
+
+def test_no_commit_hash_or_machine_diary_in_readme_package_or_tests():
+    """The README, docstrings and tests say what and why, not when or where: no commit
+    hash (a 7-12 character token of hex digits and letters) and no diary of which
+    N-core machine a figure came from. History belongs in CHANGELOG.md, measurements in
+    generated reports."""
+    import re
+
+    root = PACKAGE.parent
+    files = [root / "README.md", *PACKAGE.rglob("*.py"), *(root / "tests").rglob("*.py")]
+    commit = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,12}\b")
+    machine = re.compile(r"\bthe \d+-core machine\b|\b(faster|slower) machine\b", re.I)
+    bad = []
+    for path in files:
+        for k, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+            if commit.search(line) or machine.search(line):
+                bad.append(f"{path.relative_to(root)}:{k}: {line.strip()[:80]}")
+    assert not bad, "\n".join(bad)

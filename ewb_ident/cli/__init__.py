@@ -115,8 +115,8 @@ def _exit_now(done: SystemExit) -> None:
     """End the process with ``done``'s exit code once the command has finished: its
     files are written and closed, the output is flushed and the ``atexit`` callbacks
     (``--verbose``'s summary, logging) have run. The interpreter's own teardown of
-    the modules (jax, scipy, matplotlib) is skipped: it took 0.4-0.5 s of a 7 s
-    diagnosis on the 2-core machine and does nothing the next run can see. A code that
+    the modules (jax, scipy, matplotlib) is skipped: it took a noticeable share of a
+    short diagnosis and does nothing the next run can see. A code that
     is not a number (a message) takes the ordinary way out."""
     import atexit
     import os

@@ -195,7 +195,7 @@ def _write(out, result, traces) -> None:
     atomic_write(
         [
             (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
-            # Uncompressed: zlib took 1.1 s of a cached run's 9 s to save 8 % of 37 MB.
+            # Uncompressed: zlib costs a noticeable share of a cached run to save 8 %.
             (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp), compress=False)),
             (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
         ]

@@ -373,12 +373,12 @@ class _RefineAhead:
     forms of the best supported one so far tried by a worker that would otherwise wait
     for the round's last fit.
 
-    The candidates' fit times differ by up to 20x: on the 2-core machine a motor
-    candidate with a load torque took 2 s (4 s cold) of a 4 s search, the other core
-    idle for up to 1 s, and the chosen form's refinement then ran after the round,
-    0.5-2 s. So the candidates that need motor sub-steps start first, and once every
-    candidate has started, a worker that finishes one refines the best supported
-    candidate so far (a later one may still beat it: its refinement is then not used).
+    The candidates' fit times differ by up to 20x: a motor candidate with a load torque
+    can take half of a round while the other core idles, and the chosen form's
+    refinement would then run after the round. So the candidates that need motor
+    sub-steps start first, and once every candidate has started, a worker that
+    finishes one refines the best supported candidate so far (a later one may still
+    beat it: its refinement is then not used).
     Only with more than one thread. The fits and refinements depend on the round's
     start alone, so :meth:`run` and :meth:`refined` give what the loop and
     :func:`_refine` after it give."""

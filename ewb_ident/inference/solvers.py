@@ -1,8 +1,8 @@
 """The two Levenberg-Marquardt solvers behind one interface: each returns a
 :class:`Solution` with a :class:`Status` code. Both are NumPy loops around compiled
 functions: a solver compiled whole (optimistix's, which the seed model's fits used
-before) is compiled once per problem configuration, 2-3 s per stage and free set on
-the 2-core machine, more than the whole warm fit; the loop costs about 0.1 ms of
+before) is compiled once per problem configuration, several seconds per stage and
+free set, more than the whole warm fit; the loop costs a fraction of a millisecond of
 Python per step beside the compiled evaluation.
 
 :func:`seed_levenberg_marquardt`

@@ -12,11 +12,11 @@ imports nothing from the model.
 
 One BLAS thread. The solvers factorise small matrices (a few thousand residuals by 15
 parameters) thousands of times. OpenBLAS runs them on every core and its threads
-spin-wait for each other: measured on the 2-core machine, the SVD of a 3000 x 14
-Jacobian took 0.6 ms alone and 139 ms while another process kept the second core busy
-(0.53 ms with one thread), which made a test suite or a study running two processes
-many times slower. :func:`numerics` holds BLAS to one thread for the call
-(``threadpoolctl``; JAX's own CPU threads are not BLAS's and are left alone).
+spin-wait for each other: the SVD of a 3000 x 14 Jacobian took a couple of hundred
+times longer while another process kept the second core busy than alone or with one
+thread, which made a test suite or a study running two processes many times slower.
+:func:`numerics` holds BLAS to one thread for the call (``threadpoolctl``; JAX's own
+CPU threads are not BLAS's and are left alone).
 """
 
 from __future__ import annotations

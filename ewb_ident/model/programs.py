@@ -212,12 +212,11 @@ def made_once(lock, pending: dict, key, lookup: Callable, make: Callable) -> tup
 
 
 #: XLA options of every program: XLA's CPU fusion emitters off (the elemental emitters
-#: instead) halves the compilation of a mechanism's program (measured 1.45-1.81 s to
-#: 0.77-1.17 s on the 2-core machine, jaxlib 0.10.2) for the same speed of the program;
-#: residuals equal bit for bit, Jacobians to 1e-13 relative. And the machine code of a
-#: program generated in 4 parts side by side, not XLA's default split: it compiles
-#: 1.1x faster on the 2-core machine, the programs bit for bit the same
-#: (``python benchmarks/bench_compiler_options.py``). A jaxlib that does not know an
+#: instead) about halves the compilation of a mechanism's program for the same speed of
+#: the program; residuals equal bit for bit, Jacobians to 1e-13 relative. And the machine
+#: code of a program generated in 4 parts side by side, not XLA's default split: it
+#: compiles a little faster, the programs bit for bit the same
+#: (``python benchmarks/bench_compiler_options.py`` measures both). A jaxlib that does not know an
 #: option compiles without it.
 COMPILER_OPTIONS: dict[str, Any] = {
     "xla_cpu_use_fusion_emitters": False,
@@ -226,8 +225,8 @@ COMPILER_OPTIONS: dict[str, Any] = {
 
 #: XLA's fast-compile preset, for programs built around a long loop of small scalar
 #: kernels (the motor with mechanisms: each sub-step is some 40-70 kernels of a few
-#: numbers). On the 2-core machine (jaxlib 0.10.2) such a program runs 1.15-1.7x faster
-#: with it (e.g. stiction with wedge load torque, residuals and Jacobian 38 -> 22 ms) and
+#: numbers). Such a program runs faster with it (``bench_compiler_options.py`` gives
+#: the ratios, e.g. stiction with wedge load torque's residuals and Jacobian) and
 #: compiles in about the same time, its outputs equal to 2e-14 relative; the seed
 #: model's programs compile 20-25 % slower with it, so it is not every program's
 #: (``python benchmarks/bench_compiler_options.py``). Those figures predate native loops
