@@ -464,3 +464,16 @@ def test_summary_of_chains_too_short_for_tau_prints_not_a_traceback(short_chain)
     short = dataclasses.replace(res, diagnostics={**res.diagnostics, "tau_max": None})
     assert "tau not estimable" in posterior_summary(short)
     assert f"tau up to {res.diagnostics['tau_max']:.0f} steps" in posterior_summary(res)
+
+
+def test_a_bell_ridge_on_a_trace_that_passes_c_is_not_told_to_pass_c():
+    """On a trace whose piston passes the bell's centre c, a and c still trade off; the
+    statement says so with the trace's own max x and c, and does not ask for an apply
+    past c (which the trace already has)."""
+    from ewb_ident.data.readers import read_trace
+
+    post = sample(read_trace(DATA / "through_c_500hz.csv"), n_steps=300, max_steps=300, seed=0)
+    texts = [s["statement"] for s in post.identifiability]
+    assert not any("(x past c)" in t or "never passes" in t for t in texts), texts
+    bell = [t for t in texts if t.startswith(("a and c", "a and b", "b and c", "F_rt and"))]
+    assert bell and all("already passes c: max x = 1.131 mm > c" in t for t in bell), texts

@@ -407,8 +407,16 @@ def _identifiability(names, draws, stats, traces, stages, fixed) -> list[dict[st
             f"{HINTS['c']}; or fix b.",
         })  # fmt: skip
         pairs = [p for p in pairs if not {p[0], p[1]} <= set(bell)]
+    past_c = x_max is not None and "c" in stats and x_max >= stats["c"]["mean"]
     for m, k, c in pairs:
         hint, other = hint_of(m), hint_of(k)
+        if past_c and {m, k} <= {"F_rt", "a", "b", "c"}:
+            # The traces do pass c: asking for an apply past c would be wrong for them.
+            hint = other = (
+                f"applies that dwell on both flanks of the bell (the piston already passes c: "
+                f"max x = {x_max * 1e3:.3f} mm > c = {stats['c']['mean'] * 1e3:.3f} mm), or "
+                "less noise on x_m and force_N"
+            )
         out.append({
             "kind": "ridge", "params": [m, k], "correlation": c,
             "statement": f"{m} and {k} trade off (posterior correlation {c:+.3f}): the traces "
