@@ -301,3 +301,23 @@ def test_a_learned_term_that_cannot_be_rebuilt_is_refused_in_one_line(corrected,
     )  # fmt: skip
     assert out.exit_code == 2 and "disc_angle" in out.output, out.output
     assert not (tmp_path / "v").exists()
+
+
+def test_a_learned_coefficients_posterior_does_not_depend_on_its_size():
+    """The same damper term written with columns a million times larger (its coefficient
+    a million times smaller): the posterior samples the coefficient in units of its
+    distilled size with the same prior, so it still centres on the refitted term."""
+    from ewb_ident.diagnosis.corrected import fit_corrected
+    from ewb_ident.diagnosis.discovery import LearnedSpec
+    from ewb_ident.inference.posterior import sample_corrected
+
+    basis = json.loads(json_text(damped_diagnosis().findings[0].basis))
+    basis["refs"] = {k: v * 1e-6 for k, v in basis["refs"].items()}
+    basis["coef"] = [c * 1e-6 for c in basis["coef"]]
+    spec = LearnedSpec.from_json(basis, "test")
+    trace = damped_force_trace()
+    cf = fit_corrected(trace, [], [spec])
+    post = sample_corrected(trace, cf, n_steps=300, max_steps=300, seed=1)
+    (name,) = [n for n in post.names if n.startswith("learned[")]
+    st = post.stats[name]
+    assert st["hdi_low"] <= 1.0 <= st["hdi_high"] and st["hdi_high"] - st["hdi_low"] < 0.2

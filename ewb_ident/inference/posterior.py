@@ -312,14 +312,7 @@ def sample_corrected(
     prior_table = load_priors(priors)
     t_start = time.perf_counter()
     start = _corrected_start(trace, corrected)
-    infos = {
-        f"{m.variant}.{i.name}": i
-        for m in corrected.fit.problem.templates()
-        for i in m.param_info()
-    }
-    table = {
-        n: mechanism_prior(n, infos.get(n)) for n in start.corr_names if "." in n
-    } | prior_table
+    table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
     t_fit = time.perf_counter()
     lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
     run = run_chains(lp, [start], names, u0, table, settings, progress)

@@ -158,11 +158,8 @@ def _number(table: Mapping[str, Any], key: str, where: str) -> float:
     return float(value)
 
 
-def parse_prior(
-    name: str, table: Mapping[str, Any], where: str = "priors", info: ParamInfo | None = None
-) -> Prior:
-    """Build and check one prior from its TOML table (``info``: the parameter's
-    declaration, when it is not a model or catalog parameter: a learned coefficient).
+def parse_prior(name: str, table: Mapping[str, Any], where: str = "priors") -> Prior:
+    """Build and check one prior from its TOML table.
 
     Raises
     ------
@@ -171,7 +168,7 @@ def parse_prior(
     """
     where = f"{where}: [{name}]"
     try:
-        info = info if info is not None else param_info(name)
+        info = param_info(name)
     except KeyError:
         raise PriorError(
             f"{where}: unknown parameter; the parameters are {', '.join(PARAMS)} and the "
@@ -233,22 +230,21 @@ def param_info(name: str) -> ParamInfo:
     return mechanism_param(name)
 
 
-#: A learned term's coefficient: normal about zero, this many times its fitted size.
+#: A learned term's coefficient: normal about zero, this many times its distilled size.
 LEARNED_PRIOR_SDS = 10.0
 
 
-def mechanism_prior(name: str, info: ParamInfo | None = None) -> Prior:
+def mechanism_prior(name: str) -> Prior:
     """The default prior of a mechanism parameter: uniform over its declared range
     (log-uniform for a positive, log-scaled one), the range the diagnosis fits it in.
-    A learned term's coefficient (``info``: its declaration, unbounded) has no physical
-    range: a normal about zero, :data:`LEARNED_PRIOR_SDS` times the size it was fitted
-    at, so it hardly constrains what the data determine."""
-    info = info if info is not None else param_info(name)
+    A learned term's coefficient has no physical range; it is sampled in units of its
+    distilled size (:func:`ewb_ident.mechanisms.mechanism_param`): a normal about zero
+    with sd :data:`LEARNED_PRIOR_SDS`, so it hardly constrains what the data determine."""
+    info = param_info(name)
     if info.transform == "affine" and not np.isfinite(info.lower):
-        sd = LEARNED_PRIOR_SDS * abs(float(info.scale))
-        why = f"a learned coefficient: normal, {LEARNED_PRIOR_SDS:g}x its fitted size"
-        table = {"dist": "normal", "mean": 0.0, "sd": sd, "why": why}
-        return parse_prior(name, table, "learned term", info)
+        why = f"a learned coefficient: normal, {LEARNED_PRIOR_SDS:g}x its distilled size"
+        table = {"dist": "normal", "mean": 0.0, "sd": LEARNED_PRIOR_SDS * info.scale, "why": why}
+        return parse_prior(name, table, "learned term")
     dist = "loguniform" if info.transform == "log" else "uniform"
     table = {"dist": dist, "lower": float(info.lower), "upper": float(info.upper)}
     table["why"] = f"the catalog's range of {info.doc or name}"
