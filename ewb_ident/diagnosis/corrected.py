@@ -3,7 +3,7 @@ mechanisms, refitted from the voltage, with every parameter's value and standard
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -26,8 +26,9 @@ from ewb_ident.inference.augmented import (
     AugFit,
     fit_mechanisms,
 )
+from ewb_ident.inference.log_posterior import CONTRACT_PARAMS
 from ewb_ident.mechanisms import AbstractMechanism, variants
-from ewb_ident.mechanisms.learned import LearnedTerm
+from ewb_ident.mechanisms.learned import LearnedTerm, term_at, with_bases
 from ewb_ident.model.numerics import numerics
 
 
@@ -42,17 +43,7 @@ def corrected_of(trace: Trace, chain_fits, data, sigma, discoveries=()) -> Corre
     for m in f1.mechanisms:
         if isinstance(m, LearnedTerm) and m.place in by_place:
             d = by_place[m.place]
-            vals = m.values()
-            coef = [vals[f"c{j}"] for j in range(len(vals))]
-            spec = LearnedSpec.of(d, coef)
-            docs.append(
-                {
-                    "place": d.place,
-                    "equation": d.equation(coef),
-                    "depends_on": list(spec.depends_on),
-                    "basis": spec.to_json(),
-                }
-            )
+            docs.append(learned_doc(LearnedSpec.of(d, m.coefficients), d.equation(m.coefficients)))
         elif m.variant not in catalog:
             return None
     if not f1.mechanisms:
@@ -90,31 +81,31 @@ def corrected_record(trace: Trace, f0, f1, data, ev, notes, learned=()) -> Corre
 def with_terms(data: dict[str, Any], trace: Trace, specs, values) -> dict[str, Any]:
     """``data`` with the basis series of learned terms (:class:`LearnedSpec`) rebuilt on
     ``trace`` with the model at ``values``."""
-    n_pad = int(np.asarray(data["t"]).shape[0])
-    learned = dict(data.get("learned", {}))
-    for spec in specs:
-        learned[spec.place] = jnp.asarray(spec.basis(spec.signals_on(trace, values), n_pad))
-    return dict(data) | {"learned": learned}
+    return with_bases(data, {s.place: s.basis(s.signals_on(trace, values)) for s in specs})
 
 
 def _refitted(spec: LearnedSpec, f: AugFit) -> LearnedSpec:
-    term = next(m for m in f.mechanisms if isinstance(m, LearnedTerm) and m.place == spec.place)
-    vals = term.values()
-    return replace(spec, coef=tuple(vals[f"c{j}"] for j in range(len(vals))))
+    return replace(spec, coef=term_at(f.mechanisms, spec.place).coefficients)
 
 
-def _learned_doc(spec: LearnedSpec, trace: Trace, f: AugFit) -> dict[str, Any]:
-    sig = spec.signals_on(trace, f.values)
+def learned_doc(spec: LearnedSpec, equation: str) -> dict[str, Any]:
+    """A learned term as ``fit.json`` lists it: where it acts, its equation (SI), what it
+    depends on and its basis."""
     return {
         "place": spec.place,
-        "equation": spec.equation(sig),
+        "equation": equation,
         "depends_on": list(spec.depends_on),
         "basis": spec.to_json(),
     }
 
 
-#: Parameters whose form spread is named in the notes.
-HEADLINE = ("a", "b", "c", "mu")
+def merged_spread(spreads: Iterable[Mapping[str, float]]) -> dict[str, float]:
+    """Per parameter, the largest form spread of several learned terms."""
+    out: dict[str, float] = {}
+    for spread in spreads:
+        for k, v in spread.items():
+            out[k] = max(out.get(k, 0.0), float(v))
+    return out
 
 
 def with_spread(stderr: Mapping[str, float | None], spread: Mapping[str, float]):
@@ -127,11 +118,11 @@ def with_spread(stderr: Mapping[str, float | None], spread: Mapping[str, float])
     return out
 
 
-def spread_notes(spread, params, stderr) -> list[str]:
+def spread_notes(spread, stderr) -> list[str]:
     """A note naming the headline parameters whose error is mostly the form spread."""
     big = [
         f"{k} ±{spread[k]:.3g}"
-        for k in HEADLINE
+        for k in CONTRACT_PARAMS
         if spread.get(k, 0.0) > 0 and stderr.get(k) and spread[k] > 0.5 * stderr[k]
     ]
     if not big:
@@ -364,11 +355,12 @@ def fit_corrected(
             f2 = chain_fit(data2, list(f1.mechanisms), f1.values, [False] * len(mechs))
             if f2.converged:
                 f1, data = f2, data2
-        docs = [_learned_doc(_refitted(spec, f1), trace, f1) for spec in learned]
+        final = [_refitted(spec, f1) for spec in learned]
+        docs = [learned_doc(s, s.equation(s.signals_on(trace, f1.values))) for s in final]
     except TermError as err:
         raise DiagnoseError(str(err)) from None
     ev = bic_evidence(f1, f0, sigma)
-    spread = {k: max(s.spread.get(k, 0.0) for s in learned) for s in learned for k in s.spread}
+    spread = merged_spread(s.spread for s in learned)
     if not f1.converged:
         notes.append("the corrected whole-chain fit did not converge")
     if ev["delta_bic"] > -BIC_THRESHOLD:
@@ -380,7 +372,7 @@ def fit_corrected(
     if not spread:
         return out
     stderr = with_spread(out.stderr, spread)
-    more = spread_notes(spread, out.params, stderr)
+    more = spread_notes(spread, stderr)
     return replace(out, stderr=stderr, warnings=out.warnings + tuple(more))
 
 

@@ -63,6 +63,7 @@ from ewb_ident.data.trace import Trace
 from ewb_ident.diagnosis.artefacts import find_artefacts
 from ewb_ident.diagnosis.corrected import (
     corrected_of,
+    merged_spread,
     model_tables,
     spread_notes,
     with_spread,
@@ -71,7 +72,6 @@ from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, Discovery, discover
 from ewb_ident.diagnosis.findings import (
     closure,
     fit_learned,
-    fitted_term,
     learned_data,
     learned_finding,
     located_stages,
@@ -103,6 +103,7 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
 )
 from ewb_ident.mechanisms import AbstractMechanism, variants
+from ewb_ident.mechanisms.learned import term_at
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.predict import MOTOR_HOOKS
 from ewb_ident.model.programs import parallel_map, prefetching, threads
@@ -214,7 +215,7 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
     if tables:
         spread = _form_spread(work, added)
         tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], spread)
-        notes += spread_notes(spread, tables["augmented_params"], tables["augmented_stderr"])
+        notes += spread_notes(spread, tables["augmented_stderr"])
     timings["total"] = time.perf_counter() - t_start
     return DiagnosisResult(
         trace_name=trace.name,
@@ -522,12 +523,7 @@ def _form_spread(work: _Work, added) -> dict[str, float]:
     """Per base parameter, the spread of its estimate over the forms and places of the
     learned terms kept that the trace cannot tell apart (the largest over the terms)."""
     kept = {m.variant for m in added}
-    out: dict[str, float] = {}
-    for disc, _, _, term in work.discoveries:
-        if term.variant in kept:
-            for k, v in disc.spread.items():
-                out[k] = max(out.get(k, 0.0), v)
-    return out
+    return merged_spread(d.spread for d, _, _, term in work.discoveries if term.variant in kept)
 
 
 def _fits_of(ses: Session, selected):
@@ -773,7 +769,7 @@ def _findings(
             after = stage_after.get(mech.stage, {})
         if mech.variant in by_variant:
             disc, f_new, ev, _ = by_variant[mech.variant]
-            term = fitted_term(f_new, disc.place)
+            term = term_at(f_new.mechanisms, disc.place)
             ev = ev | chain_prefixed(chain_ev.get(mech.variant))
             rivals = tuple(work.rivals.get(disc.stage, ()))
             findings.append(

@@ -72,6 +72,7 @@ from ewb_ident.diagnosis.inputs import (
     render,
     render_pair,
     sensor_signal,
+    stacked,
 )
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import zoh_map
@@ -264,6 +265,13 @@ class PlaceFit:
         return self.score <= -HELDOUT_BIC and self.share >= MIN_HELDOUT_SHARE and consistent
 
 
+def _inputs_of(col: Column) -> tuple[str, ...]:
+    """The signals a basis column depends on."""
+    if col.form[0] == "one":
+        return ()
+    return tuple(col.form[1:3]) if col.form[0] in PRODUCT else (col.signal,)
+
+
 @dataclass(frozen=True)
 class Discovery:
     """What discovery found at one stage: the best place, its learned and distilled
@@ -291,12 +299,7 @@ class Discovery:
 
     @property
     def depends_on(self) -> tuple[str, ...]:
-        out: list[str] = []
-        for c in self.columns:
-            for s in c.signal.split("*"):
-                if s != "constant" and s not in out:
-                    out.append(s)
-        return tuple(out)
+        return tuple(dict.fromkeys(n for c in self.columns for n in _inputs_of(c)))
 
     @property
     def equivalents(self) -> tuple[str, ...]:
@@ -651,23 +654,14 @@ def _specificity(place: str) -> int:
     return next(i for i, p in enumerate(PLACE_ORDER) if place.startswith(p))
 
 
-def basis_matrix(disc: Discovery, n_pad: int) -> np.ndarray:
-    """The distilled term's basis series (n_pad, K), zero-padded, for the model's data."""
+def basis_matrix(disc: Discovery) -> np.ndarray:
+    """The distilled term's basis series on the diagnosed trace, (n, K)."""
     n = disc.signals[next(iter(disc.signals))].values.size
-    cols = [np.ones(n) if c.values is None else c.values for c in disc.columns]
-    B = np.zeros((n_pad, len(cols)))
-    B[:n] = np.stack(cols, axis=1)
-    return B
+    return stacked([c.values for c in disc.columns], n)
 
 
 class TermError(ValueError):
     """A learned term that cannot be read or rebuilt on a trace."""
-
-
-def _inputs_of(col: Column) -> tuple[str, ...]:
-    if col.form[0] == "one":
-        return ()
-    return tuple(col.form[1:3]) if col.form[0] in PRODUCT else (col.signal,)
 
 
 @dataclass(frozen=True)
@@ -800,16 +794,10 @@ class LearnedSpec:
             )
         return {n: replace(s, ref=self.refs[n]) if n in self.refs else s for n, s in sig.items()}
 
-    def basis(self, signals: Mapping[str, Signal], n_pad: int | None = None) -> np.ndarray:
-        """The basis series (n or n_pad, K) on the signals of :meth:`signals_on`."""
+    def basis(self, signals: Mapping[str, Signal]) -> np.ndarray:
+        """The basis series (n, K) on the signals of :meth:`signals_on`."""
         n = next(iter(signals.values())).values.size
-        cols = []
-        for c in self.columns:
-            v = form_values(c.form, c.signal, signals, self.refs)
-            cols.append(np.ones(n) if v is None else v)
-        B = np.zeros((n if n_pad is None else n_pad, len(cols)))
-        B[:n] = np.stack(cols, axis=1)
-        return B
+        return stacked([form_values(c.form, c.signal, signals, self.refs) for c in self.columns], n)
 
     def equation(self, signals: Mapping[str, Signal], coef: Sequence[float] | None = None) -> str:
         return equation_of(self.place, self.terms, self.coef if coef is None else coef, signals)

@@ -6,7 +6,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
@@ -33,7 +32,7 @@ from ewb_ident.diagnosis.session import SEPARATE, Session, bic_evidence, stage_o
 from ewb_ident.inference.augmented import AugFit, fit_mechanisms
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.mechanisms.base import RESOLVED_Z, fmt_pm
-from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
+from ewb_ident.mechanisms.learned import PLACES, term_at, with_bases
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -189,20 +188,12 @@ def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
     ev = bic_evidence(f_new, f_cur, ses.sigma_tf)
     if ev["delta_bic"] > -threshold:
         return None
-    return f_new, ev, fitted_term(f_new, disc.place)
+    return f_new, ev, term_at(f_new.mechanisms, disc.place)
 
 
 def learned_data(data: dict[str, Any], discoveries) -> dict[str, Any]:
     """``data`` with the basis series of the discovered terms (by place)."""
-    n_pad = int(np.asarray(data["t"]).shape[0])
-    learned = dict(data.get("learned", {}))
-    for d in discoveries:
-        learned[d.place] = jnp.asarray(basis_matrix(d, n_pad))
-    return dict(data) | {"learned": learned}
-
-
-def fitted_term(f: AugFit, place: str) -> LearnedTerm:
-    return next(m for m in f.mechanisms if isinstance(m, LearnedTerm) and m.place == place)
+    return with_bases(data, {d.place: basis_matrix(d) for d in discoveries})
 
 
 def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, after,
@@ -211,8 +202,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     it depends on, its held-out improvement and a physical reading (a hypothesis)."""
     stage = disc.stage
     se = f_new.mechanism_stderr(term)
-    vals = term.values()
-    coef = [vals[f"c{j}"] for j in range(len(vals))]
+    vals, coef = term.values(), term.coefficients
     equation = disc.equation(coef)
     info = PLACES[disc.place]
     phases = _phases_of(stage, flagged, disc.stages)
@@ -302,7 +292,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
         terms=tuple(terms),
         reading=hyp,
         basis=LearnedSpec.of(disc, coef).to_json(),
-        term_series=basis_matrix(disc, ses.trace.n) @ np.asarray(coef, float),
+        term_series=basis_matrix(disc) @ np.asarray(coef, float),
         **_main_input(disc),
     )
 

@@ -407,6 +407,11 @@ def form_values(
     return ev(signals[signal], form_fn(form, ref(signal)))
 
 
+def stacked(values: Sequence[np.ndarray | None], n: int) -> np.ndarray:
+    """Basis columns side by side, (n, K) (``None``: the constant)."""
+    return np.stack([np.ones(n) if v is None else v for v in values], axis=1)
+
+
 def _col(label: str, signal: str, form: tuple, signals: Mapping[str, Signal]) -> Column:
     return Column(label, signal, form_values(form, signal, signals), form)
 

@@ -174,9 +174,9 @@ class DiagnosisResult:
     timings
         Seconds spent per step.
     corrected
-        The whole chain fitted with the catalog findings on (``None`` when nothing in
-        the catalog was found or a discovered term is among them): where the
-        corrected model's posterior starts.
+        The whole chain fitted with the findings on, catalog mechanisms and learned
+        terms (``None`` when there is none): where the corrected model's posterior
+        starts.
     """
 
     trace_name: str

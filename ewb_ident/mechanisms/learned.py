@@ -13,7 +13,7 @@ an added brake torque, or the reading of one sensor.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
@@ -138,8 +138,12 @@ class LearnedTerm(AbstractMechanism):
         return jnp.asarray(self.coef)
 
     def values(self) -> dict[str, float]:
-        c = np.asarray(self._coef(), dtype=float)
-        return {f"c{j}": float(v) for j, v in enumerate(c)}
+        return {f"c{j}": v for j, v in enumerate(self.coefficients)}
+
+    @property
+    def coefficients(self) -> tuple[float, ...]:
+        """The coefficients, in the place's unit per basis column."""
+        return tuple(float(v) for v in np.asarray(self._coef(), dtype=float))
 
     def with_values(self, values: Mapping[str, Any]) -> LearnedTerm:
         cur = {f"c{j}": v for j, v in enumerate(list(self._coef()))}
@@ -193,3 +197,20 @@ class LearnedTerm(AbstractMechanism):
 
     def unread(self, channel, y, ctx):
         return y - self.term(ctx) if channel == self.channel else y
+
+
+def term_at(mechanisms: Sequence[AbstractMechanism], place: str) -> LearnedTerm:
+    """The learned term at ``place`` among fitted mechanisms."""
+    return next(m for m in mechanisms if isinstance(m, LearnedTerm) and m.place == place)
+
+
+def with_bases(data: Mapping[str, Any], bases: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """``data`` with learned terms' basis series by place (each (n, K), zero-padded to
+    the data's length), which :meth:`LearnedTerm.term` reads."""
+    n_pad = int(np.asarray(data["t"]).shape[0])
+    learned = dict(data.get("learned", {}))
+    for place, B in bases.items():
+        padded = np.zeros((n_pad, B.shape[1]))
+        padded[: B.shape[0]] = B
+        learned[place] = jnp.asarray(padded)
+    return dict(data) | {"learned": learned}

@@ -138,14 +138,13 @@ def validation_summary(result, params_label: str) -> str:
     return "\n".join(lines)
 
 
-#: The parameters the report's terminal output ends with.
-HEADLINE = ("a", "b", "c", "mu")
-
-
 def headline(result: FitResult, posterior=None, diagnosis=None, corrected_posterior=None) -> str:
     """a, b, c, mu with their 90 % intervals: the baseline fit's and, when the diagnosis
     corrected the model, the corrected one's (MCMC HDIs where a posterior ran, else the
     estimate ± 1.645 standard errors), in the report's units."""
+    from ewb_ident.diagnosis.corrected import merged_spread
+    from ewb_ident.inference.log_posterior import CONTRACT_PARAMS
+    from ewb_ident.mechanisms.base import RESOLVED_Z as Z
     from ewb_ident.reporting.style import SHOWN_UNITS
 
     rows = [("baseline", result.values, result.stderr, posterior)]
@@ -160,14 +159,12 @@ def headline(result: FitResult, posterior=None, diagnosis=None, corrected_poster
         )
     # A corrected parameter whose value depends on the learned term's form keeps the
     # interval that includes that spread (the MCMC's is conditional on the form).
+    findings = diagnosis.findings if diagnosis is not None else ()
     spread = {
-        k: v
-        for f in (diagnosis.findings if diagnosis is not None else ())
-        for k, v in (f.basis.get("spread") or {}).items()
-        if v > 0
+        k for k, v in merged_spread(f.basis.get("spread") or {} for f in findings).items() if v > 0
     }
     lines = ["a, b, c, mu with 90 % intervals:"]
-    for name in HEADLINE:
+    for name in CONTRACT_PARAMS:
         unit, k = SHOWN_UNITS.get(PARAMS[name].unit, (PARAMS[name].unit, 1.0))
         for model, values, stderr, post in rows:
             v, se = values.get(name), stderr.get(name)
@@ -175,11 +172,11 @@ def headline(result: FitResult, posterior=None, diagnosis=None, corrected_poster
                 continue
             stats = post.stats.get(name, {}) if post is not None else {}
             if model == "corrected" and name in spread and se is not None:
-                lo, hi, how = v - 1.645 * se, v + 1.645 * se, "± 1.645 s.e., form spread in"
+                lo, hi, how = v - Z * se, v + Z * se, f"± {Z:g} s.e., form spread in"
             elif stats.get("source", "posterior") == "posterior" and "hdi_low" in stats:
                 lo, hi, how = stats["hdi_low"], stats["hdi_high"], "MCMC"
             elif se is not None:
-                lo, hi, how = v - 1.645 * se, v + 1.645 * se, "± 1.645 s.e."
+                lo, hi, how = v - Z * se, v + Z * se, f"± {Z:g} s.e."
             else:
                 lo = hi = None
                 how = "held, not estimated"
