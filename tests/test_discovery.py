@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import re
 
 import numpy as np
 import pytest
@@ -83,6 +84,57 @@ def test_a_planted_term_is_learned_where_it_acts_and_its_truth_recovered():
     assert err < 0.1 * np.sqrt(np.mean(truth**2))
     assert top.heldout["excess_share"] >= 0.8
     assert top.heldout["method"].startswith("4-fold blocked")
+
+
+RUNOUT_PERIOD_DEG = 51.4  # a worm with 7 teeth a turn: a period in no list
+RUNOUT_DEG = 1.0
+
+
+def runout_trace():
+    """A periodic transmission error: the piston follows the pinion angle plus
+    ``A sin(2 pi theta / P + phase)``, at a period no list of candidates holds."""
+    trace, run, _ = _clean()
+    th = run.states["theta_deg"]
+    p = rig.RigParams()
+    th_w = th + RUNOUT_DEG * np.sin(2 * np.pi * th / RUNOUT_PERIOD_DEG + 0.7)
+    return _with({"x_m": p.p2 * th_w**2 + p.p1 * th_w + p.p0}, "runout")
+
+
+def test_a_periodic_term_is_found_at_the_period_the_residual_shows():
+    """The period comes from the residual (a periodogram in the angle), not a list: the
+    learned term acts at the gap curve, depends on the angle, and its distilled period,
+    amplitude and series match the planted ones."""
+    res = diagnose(runout_trace())
+    (top,) = res.findings
+    assert top.place == "gap" and top.depends_on == ("angle",)
+    m = re.fullmatch(
+        r"Δθ = \+?([0-9.e+-]+)·sin\(2πθ/([0-9.]+)° [+-][0-9.]+\) \[deg\]", top.equation
+    )
+    assert m, top.equation
+    assert float(m.group(2)) == pytest.approx(RUNOUT_PERIOD_DEG, rel=0.01)
+    assert float(m.group(1)) == pytest.approx(RUNOUT_DEG, rel=0.15)
+    trace, run, _ = _clean()
+    th = run.states["theta_deg"]
+    truth = RUNOUT_DEG * np.sin(2 * np.pi * th / RUNOUT_PERIOD_DEG + 0.7)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.25 * np.sqrt(np.mean(truth**2))
+    assert top.heldout["excess_share"] >= 0.8
+
+
+def test_a_term_acting_on_one_side_of_a_signed_input_is_learned_as_such():
+    """A damper that acts only while the piston closes, c max(0, dx/dt) (a one-way
+    valve): the learned function of a signed input is not only odd; the distilled
+    equation is the one-sided hinge with the planted coefficient."""
+    trace, truth = damped_recording(
+        lambda xr: 2 * DAMPING_NS_PER_M * np.maximum(xr, 0.0),
+        seed=5, rate_hz=200.0, duration_s=4.0, profile="staircase", noise_seed=17,
+    )  # fmt: skip
+    res = diagnose(dataclasses.replace(trace, name="one_way"))
+    (top,) = res.findings
+    assert top.depends_on == ("x_rate",)
+    (term,) = top.terms
+    assert term["expression"] == "max(0, dx/dt)"
+    assert term["coef"] == pytest.approx(2 * DAMPING_NS_PER_M, rel=0.05)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.15 * np.sqrt(np.mean(truth**2))
 
 
 def test_the_learned_term_follows_the_contract():
@@ -181,19 +233,28 @@ def test_a_discovered_term_is_drawn_against_what_it_depends_on():
     assert name in pngs and pngs[name][:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def other_damped_trace():
-    """Another recording of the same damped rig: another seed, open-loop steps, 500 Hz."""
+def damped_recording(damper, seed, rate_hz, duration_s, profile, noise_seed):
+    """A recording of the rig whose force carries ``damper(dx/dt)`` (N), and that term."""
     noise = rig.SensorNoise()
     trace, _, run = rig.simulate_rig(
-        rig.RigParams(), noise=noise, return_clean=True, seed=11, sample_rate_hz=500.0,
-        duration_s=3.0, profile="steps",
+        rig.RigParams(), noise=noise, return_clean=True, seed=seed, sample_rate_hz=rate_hz,
+        duration_s=duration_s, profile=profile,
     )  # fmt: skip
-    rng = np.random.default_rng(3)
-    xr = np.gradient(run.states["x_m"], trace.dt)
+    rng = np.random.default_rng(noise_seed)
+    term = damper(np.gradient(run.states["x_m"], trace.dt))
     ch = dict(trace.channels)
-    force = run.states["force_N"] + DAMPING_NS_PER_M * xr
+    force = run.states["force_N"] + term
     ch["force_N"] = force + noise.sigma("force_N") * rng.standard_normal(trace.n)
-    return dataclasses.replace(trace, channels=ch, name="damped_other")
+    return dataclasses.replace(trace, channels=ch), term
+
+
+def other_damped_trace():
+    """Another recording of the same damped rig: another seed, open-loop steps, 500 Hz."""
+    trace, _ = damped_recording(
+        lambda xr: DAMPING_NS_PER_M * xr,
+        seed=11, rate_hz=500.0, duration_s=3.0, profile="steps", noise_seed=3,
+    )  # fmt: skip
+    return dataclasses.replace(trace, name="damped_other")
 
 
 @functools.cache

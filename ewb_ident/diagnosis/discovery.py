@@ -16,8 +16,9 @@ model something is missing and what it depends on, without a list of candidate p
    must not predict itself).
 3. **The learned function** is an additive model: for each input, a flexible basis
    (piecewise-linear hinges for levels; odd powers and a smooth sign for signed
-   signals; harmonics for angles), so any smooth or switching dependence on one input
-   and sums over inputs are representable. It is fitted through the model: the term's
+   signals; harmonics for angles, at the periods the residual shows: a periodogram in
+   the angle, :func:`angle_periods`, not a list), so any smooth or switching dependence
+   on one input and sums over inputs are representable. It is fitted through the model: the term's
    effect on the stage's residuals is the model's exact linear response at the place
    (diagonal for a static place, the motor's impulse response for the motor's
    equations, both the output and the downstream input for a sensor), computed at the
@@ -28,8 +29,8 @@ model something is missing and what it depends on, without a list of candidate p
    (leave-one-apply-out with three or more applies, else four blocks in time): a term
    that only fits the data it saw is not kept. Places are ranked by held-out residual.
 5. **Distilled.** On the best place, sparse regression over a generated library of
-   the chosen inputs (powers, saturations, signs, hinges, harmonics at the period the
-   learned term chose, products) keeps the smallest expression that keeps 90 % of the
+   the chosen inputs (powers, saturations, signs, hinges, one-sided and dead-zone
+   forms of signed inputs, harmonics at the period the learned term chose, products) keeps the smallest expression that keeps 90 % of the
    learned term's held-out improvement.
 
 The distilled term is then fitted by nonlinear least squares through the JAX model (as
@@ -69,6 +70,7 @@ from ewb_ident.diagnosis.inputs import (
     library,
     model_channels,
     motor_fine,
+    periodic,
     render,
     render_pair,
     sensor_signal,
@@ -339,8 +341,11 @@ def equation_of(
     return f"{info.quantity} = {expr} [{info.unit}]"
 
 
-def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
-    """The linearised problem of a term at ``place`` about the fit ``fit`` of ``stages``."""
+def _linearised(ses, fit, place):
+    """The residual ``r`` and Jacobian ``J`` of the fit ``fit`` at the current values,
+    its channels, their row weights, and ``G(U)``: the weighted change of every
+    residual row a term at ``place`` with basis columns ``U`` (n, K) makes (``None``
+    when the term shows in none of the fit's channels)."""
     from ewb_ident.inference.augmented import residuals_and_jacobian
 
     n = ses.trace.n
@@ -350,26 +355,37 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     n_pad = r.size // len(chans)
     effect = place_effect(place, fit.values, ses.trace)
     if not set(effect) & set(chans):
-        return None
-    cols = [c for g in groups.values() for c in g]
-    U = np.stack([np.ones(n) if c.values is None else c.values for c in cols], axis=1)
+        return r, J, chans, {}, None
     weights = {ch: np.asarray(ses.data["w"][ch], float)[:n_pad] for ch in chans}
-    blocks = []
-    for ch in chans:
-        w = weights[ch]
-        B = np.zeros((n_pad, U.shape[1]))
-        if ch in effect:
-            B[:n] = effect[ch](U) * w[:n, None]
-        blocks.append(B)
-    G = np.concatenate(blocks, axis=0)
+
+    def G_of(U: np.ndarray) -> np.ndarray:
+        blocks = []
+        for ch in chans:
+            B = np.zeros((n_pad, U.shape[1]))
+            if ch in effect:
+                B[:n] = effect[ch](U) * weights[ch][:n, None]
+            blocks.append(B)
+        return np.concatenate(blocks, axis=0)
+
+    return r, J, chans, weights, G_of
+
+
+def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
+    """The linearised problem of a term at ``place`` about the fit ``fit`` of ``stages``."""
+    n = ses.trace.n
+    r, J, chans, weights, G_of = _linearised(ses, fit, place)
+    if G_of is None:
+        return None
+    n_pad = r.size // len(chans)
+    cols = [c for g in groups.values() for c in g]
+    G = G_of(np.stack([np.ones(n) if c.values is None else c.values for c in cols], axis=1))
     keep = np.linalg.norm(G, axis=0) > 0
     norms = np.where(keep, np.linalg.norm(G, axis=0), 1.0)
     G = G / norms
     # A column the stage's own parameters already make (the torque itself at the torque's
     # output is a change of mu) is no new physics: left out.
     if J.shape[1]:
-        Uj, sj, _ = np.linalg.svd(J, full_matrices=False)
-        Uj = Uj[:, sj > 1e-10 * max(float(sj[0]), 1e-300)]
+        Uj = _span(J)
         orth = np.linalg.norm(G - Uj @ (Uj.T @ G), axis=0)
         G[:, orth < MIN_NEW_SHARE] = 0.0
     fold_rows = np.concatenate([np.r_[fold, -np.ones(n_pad - n, int)]] * len(chans))
@@ -378,6 +394,79 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     noise_rows = float(np.count_nonzero(fold_rows >= 0)) * white_level(r, fold_rows) ** 2
     own = np.concatenate([np.full(n_pad, ch in STAGE_OUTPUTS[stage]) for ch in chans])
     return Design(r, J, fold_rows, G, noise_rows, rho, norms, own)
+
+
+def _span(J: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns of ``J`` (its numerically nonzero directions)."""
+    Uj, sj, _ = np.linalg.svd(J, full_matrices=False)
+    return Uj[:, sj > 1e-10 * max(float(sj[0]), 1e-300)]
+
+
+# ----------------------------------------------------------------------------- periods
+
+
+#: Shortest period of a term periodic in the pinion angle that discovery looks for, deg
+#: (a cogging torque repeats 360/LCM(slots, poles) degrees of the rotor: 15-30 for
+#: common small motors), and the longest (once per revolution).
+PERIOD_RANGE_DEG = (10.0, 360.0)
+#: Periods of the coarse scan; neighbours differ in frequency by at most half a cycle
+#: over the angle's span where that takes no more than this many.
+SCAN_PERIODS = 160
+
+
+def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
+    """The periods (deg) of a term periodic in the pinion angle that best explain the
+    residual at ``place``, estimated from the residual itself (a periodogram in the
+    angle, through the model's response at the place and orthogonal to what the stage's
+    parameters make), not taken from a list: a coarse scan over every period the trace
+    covers (1.5 cycles or more) and resolves (4 samples a cycle or more), then each of
+    the ``most`` best peaks refined. The held-out selection then judges them as any
+    other input."""
+    s = signals.get("angle")
+    if s is None:
+        return []
+    vals = s.values if s.fine is None else s.fine.reshape(-1)
+    step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0.0
+    span = float(np.ptp(s.values))
+    lo, hi = max(PERIOD_RANGE_DEG[0], 4.0 * step), min(PERIOD_RANGE_DEG[1], span / 1.5)
+    if not lo < hi:
+        return []
+    r, J, _, _, G_of = _linearised(ses, fit, place)
+    if G_of is None:
+        return []
+    Uj = _span(J) if J.shape[1] else np.zeros((r.size, 0))
+    r_perp = r - Uj @ (Uj.T @ r)
+
+    def gains(periods) -> np.ndarray:
+        U = np.stack([c.values for P in periods for c in periodic(s, P, signals)], axis=1)
+        G = G_of(U)
+        G = G - Uj @ (Uj.T @ G)
+        out = []
+        for k in range(len(periods)):
+            Q, _ = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
+            out.append(float(np.sum((Q.T @ r_perp) ** 2)))
+        return np.asarray(out)
+
+    # Frequencies (cycles per degree): spaced by half a cycle over the span, or
+    # geometrically when that would take more than SCAN_PERIODS.
+    f_lo, f_hi = 1.0 / hi, 1.0 / lo
+    df = 0.5 / span
+    if (f_hi - f_lo) / df + 1 <= SCAN_PERIODS:
+        freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
+    else:
+        freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
+    g = gains(1.0 / freqs)
+    nb = np.maximum(
+        g[np.maximum(np.arange(g.size) - 1, 0)], g[np.minimum(np.arange(g.size) + 1, g.size - 1)]
+    )
+    peaks = np.flatnonzero(g >= nb)
+    out = []
+    for k in sorted(peaks, key=lambda k: -g[k])[:most]:
+        left, right = freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)]
+        fine = np.linspace(left, right, 9)
+        gf = gains(1.0 / fine)
+        out.append(float(1.0 / fine[int(np.argmax(gf))]))
+    return out
 
 
 def _column_index(d: Design, groups: Mapping[str, list[Column]], names) -> list[int]:
@@ -555,7 +644,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
         model = model_channels(ses, fit)
         sig = input_signals(trace, model, fine)
-        groups = learned_groups(sig, carriers_of(place))
+        groups = learned_groups(sig, carriers_of(place), angle_periods(ses, fit, place, sig))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue

@@ -8,7 +8,7 @@ and the physical form of each term (:func:`physical`). Used by
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -17,8 +17,6 @@ from ewb_ident.diagnosis.locate import disc_angle
 from ewb_ident.model.integrate import zoh_map
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
-#: Candidate periods of a term periodic in the pinion angle, degrees.
-PERIODS_DEG = (360.0, 180.0, 120.0, 90.0, 72.0, 60.0, 45.0, 40.0, 36.0, 30.0, 24.0, 20.0)
 #: Time constants of the low-passed histories, s.
 HISTORY_S = (0.1, 0.5, 2.0)
 
@@ -361,6 +359,8 @@ def form_fn(form: tuple, r: float):
         return lambda v, w=form[1]: 1 - np.exp(-np.abs(v) / r / w)
     if kind == "hinge":
         return lambda v, k=form[1]: np.maximum(v / r - k, 0.0)
+    if kind == "nhinge":
+        return lambda v, k=form[1]: np.maximum(-v / r - k, 0.0)
     if kind == "harm":
         return lambda v, k=form[1], g=TRIG[form[2]]: g(k * v)
     if kind == "period":
@@ -380,7 +380,8 @@ def form_values(
     ----------
     form
         ``(kind, *args)``: ``pow``, ``spow``, ``abs``, ``tanh``, ``sqrt``, ``sat``,
-        ``hinge``, ``harm``, ``period`` of ``signal``; ``prod``, ``prod2``, ``prodabs``
+        ``hinge``, ``nhinge`` (the hinge of the negated signal), ``harm``, ``period`` of
+        ``signal``; ``prod``, ``prod2``, ``prodabs``
         of the carrier ``form[1]`` times a function of ``form[2]``; ``one``.
     signal
         The input it depends on (a product's: ``"carrier*other"``).
@@ -428,10 +429,11 @@ def _products(c: Signal, s: Signal, signals: Mapping[str, Signal]) -> list[Colum
     return cols
 
 
-def _periodic(s: Signal, period: float, signals) -> list[Column]:
+def periodic(s: Signal, period: float, signals) -> list[Column]:
     """A sine and cosine of the angle ``s`` with ``period`` (degrees)."""
     return [
-        _col(f"{f}(2π{s.symbol}/{period:g}°)", s.name, ("period", period, f), signals) for f in TRIG
+        _col(f"{f}(2π{s.symbol}/{period:.4g}°)", s.name, ("period", period, f), signals)
+        for f in TRIG
     ]
 
 
@@ -441,13 +443,32 @@ def _harmonic(s: Signal, k: int, signals) -> list[Column]:
 
 
 def _signed(s: Signal, signals) -> list[Column]:
-    """The odd functions of a signed input."""
+    """The odd functions of a signed input (its even part, one-sided and dead-zone forms
+    are the distillation library's: :func:`library`)."""
     return [
         _col(s.symbol, s.name, ("pow", 1), signals),
         _col(f"{s.symbol}|{s.symbol}|", s.name, ("spow", 2), signals),
         _col(f"{s.symbol}³", s.name, ("pow", 3), signals),
         _col(f"sign({s.symbol})", s.name, ("tanh", 0.05), signals),
     ]
+
+
+#: Knots of a signed input's hinges in the library, as shares of its largest excursion
+#: on each side.
+SIDE_KNOTS = (1 / 3, 2 / 3)
+
+
+def _side_hinges(s: Signal, shares: Sequence[float], signals) -> list[Column]:
+    """Hinges of a signed input on each side it reaches, ``max(0, s - k)`` and
+    ``max(0, -s - k)``, knots at ``shares`` of its largest excursion there (a share of
+    0: the side itself, ``max(0, s)``)."""
+    z = s.values / s.ref
+    out = []
+    for kind, top in (("hinge", float(np.max(z))), ("nhinge", float(np.max(-z)))):
+        if top < 0.05:
+            continue  # a side the signal does not reach
+        out += [_col("", s.name, (kind, q * top), signals) for q in shares]
+    return [replace(c, label=physical(c, signals)[0]) for c in out]
 
 
 def _hinges(s: Signal, shares: Sequence[float], signals) -> list[Column]:
@@ -458,10 +479,13 @@ def _hinges(s: Signal, shares: Sequence[float], signals) -> list[Column]:
 
 
 def learned_groups(
-    signals: Mapping[str, Signal], carriers: Sequence[str] = ()
+    signals: Mapping[str, Signal],
+    carriers: Sequence[str] = (),
+    periods: Sequence[float] = (),
 ) -> dict[str, list[Column]]:
     """The flexible basis of the learned function, one group of columns per input (and
-    per candidate period of the angle), and per carrier times each other input."""
+    per period of the angle in ``periods``, deg), and per carrier times each other
+    input."""
     groups: dict[str, list[Column]] = {"constant": [Column("1", "constant", None, ("one",))]}
     for cname in carriers:
         c = signals.get(cname)
@@ -480,13 +504,8 @@ def learned_groups(
                 s, KNOTS, signals
             )
             if s.kind == "angle":
-                vals = s.values if s.fine is None else s.fine.reshape(-1)
-                step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0
-                span = float(np.ptp(s.values))
-                for P in PERIODS_DEG:
-                    if span < 1.5 * P or step > P / 4:
-                        continue  # not a period this trace covers or resolves
-                    groups[f"{s.name}@{P:g}"] = _periodic(s, P, signals)
+                for P in periods:
+                    groups[f"{s.name}@{P:.4g}"] = periodic(s, P, signals)
     return groups
 
 
@@ -506,7 +525,7 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[C
         name, _, per = g.partition("@")
         s = signals[name]
         if per:
-            items += [_periodic(s, float(per) / h, signals) for h in (1, 2)]
+            items += [periodic(s, float(per) / h, signals) for h in (1, 2)]
             continue
         names.append(name)
         if s.kind == "phase":
@@ -524,6 +543,7 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[C
                 _col(f"|{sym}|", name, ("abs",), signals),
                 _col(f"sign({sym})", name, ("tanh", 0.05), signals),
                 _col(f"tanh({sym}/{0.3 * s.ref:.3g})", name, ("tanh", 0.3), signals),
+                *_side_hinges(s, (0.0, *SIDE_KNOTS), signals),
             ]
         else:
             cand += [
@@ -576,8 +596,11 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
         return f"tanh({s.symbol}/{scale:.3g} {s.unit})", 1.0, ""
     if kind == "sat":
         return f"(1 − exp(−|{s.symbol}|/{col.form[1] * s.ref:.3g} {s.unit}))", 1.0, ""
-    if kind == "hinge":
-        return f"max(0, {s.symbol} − {col.form[1] * s.ref:.4g} {s.unit})", 1.0 / s.ref, s.unit
+    if kind in ("hinge", "nhinge"):
+        sym = s.symbol if kind == "hinge" else f"−{s.symbol}"
+        knot = col.form[1] * s.ref
+        expr = f"max(0, {sym})" if knot == 0 else f"max(0, {sym} − {knot:.4g} {s.unit})"
+        return expr, 1.0 / s.ref, s.unit
     return col.label, 1.0, ""
 
 
