@@ -34,6 +34,14 @@ def simulate(
         Path | None,
         typer.Option("--params", help="fit.json whose fitted parameters the rig takes."),
     ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="NAME=VALUE, SI units: one rig parameter on top of the defaults or --params "
+            "(repeat for several), e.g. --set c=1.007e-3.",
+        ),
+    ] = None,
 ) -> None:
     """Synthetic rig trace with documented truth: writes OUT, its sidecar and OUT.truth.json."""
     import dataclasses
@@ -66,6 +74,7 @@ def simulate(
             fitted = load_params(params).as_dict()
         except ValidateError as err:
             fail(str(err))
+    fitted |= _settings(set_ or [])
     try:
         rig_params = rig.RigParams(**fitted)
         if vary > 0:
@@ -91,3 +100,32 @@ def simulate(
     write_trace(trace, out)
     write_json(truth_path, truth)
     typer.echo(f"wrote {out} ({trace.n} samples at {trace.sample_rate_hz:g} Hz) and {truth_path}")
+
+
+def _settings(items: list[str]) -> dict[str, float]:
+    """``--set NAME=VALUE`` pairs: rig parameters, finite numbers inside the fit's bounds
+    (the rig's own checks, :class:`ewb_ident.rig.RigParams`, follow)."""
+    import math
+
+    from ewb_ident.model.params import PARAMS
+    from ewb_ident.rig import VARIED_PARAMS
+
+    allowed = (*VARIED_PARAMS, "r_eff_m")
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, text = (part.strip() for part in item.partition("="))
+        if not sep or not name:
+            fail(f"--set takes NAME=VALUE, e.g. --set c=1.0e-3; got {item!r}")
+        if name not in allowed:
+            fail(f"--set {item}: unknown parameter {name!r}; the rig's are {', '.join(allowed)}")
+        try:
+            value = float(text)
+        except ValueError:
+            fail(f"--set {item}: {text!r} is not a number; give the value in SI units")
+        info = PARAMS.get(name)
+        if not math.isfinite(value) or (info is not None and not info.inside(value)):
+            unit = "" if info is None or info.unit == "1" else f" {info.unit}"
+            bounds = f" within ({info.lower:g}, {info.upper:g}){unit}" if info else ""
+            fail(f"--set {item}: {name} must be a finite number{bounds}, got {text}")
+        out[name] = value
+    return out
