@@ -216,6 +216,13 @@ def test_a_folder_and_a_glob_are_campaigns_too(campaign, tmp_path):
     table = pd.read_csv(tmp_path / "results.csv")
     assert set(table["trace"]) == {str(campaign / "v2_0.csv"), str(campaign / "v2_1.csv")}
     assert list(table.columns[1:12]) == CONTRACT and not (tmp_path / "changes.csv").exists()
+    # a folder that holds the output folder: the batch's own tables are not traces
+    own = campaign / "own_out"
+    first = runner.invoke(app, ["batch", str(campaign), "--out", str(own)])
+    again = runner.invoke(app, ["batch", str(campaign), "--out", str(own)])
+    assert first.exit_code == again.exit_code == 3  # manifest.csv is no trace: an error row
+    assert " reused, 0 fitted" in again.stdout
+    assert "own_out" not in " ".join(pd.read_csv(own / "results.csv")["trace"])
 
 
 # ---------------------------------------------------------------- random effects

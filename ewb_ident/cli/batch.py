@@ -78,7 +78,7 @@ def batch(
 
     try:
         campaign = resolve_campaign(source, mapping=mapping, r_eff_m=r_eff,
-                                    reserved=RESULT_COLUMNS)
+                                    reserved=RESULT_COLUMNS, exclude=out)
     except CampaignError as err:
         fail(str(err))
     for old, new in campaign.renamed.items():

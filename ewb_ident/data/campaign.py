@@ -215,8 +215,12 @@ def resolve_campaign(
     mapping: Path | None = None,
     r_eff_m: float | None = None,
     reserved: tuple[str, ...] = (),
+    exclude: Path | None = None,
 ) -> Campaign:
     """The campaign named by a folder, a glob or a manifest (see :func:`read_manifest`).
+
+    ``exclude``: a folder whose files a folder or glob never takes (the batch's own
+    output folder, whose tables are not traces).
 
     Raises
     ------
@@ -246,5 +250,11 @@ def resolve_campaign(
     else:
         raise CampaignError(f"{source}: no such file or folder; give a manifest (.csv or "
                             ".parquet), a folder of traces, or a glob")
+    if exclude is not None:
+        skip = exclude.resolve()
+        files = [p for p in files if not p.resolve().is_relative_to(skip)]
+        if not files:
+            raise CampaignError(f"{source}: every trace file it names is in the output folder "
+                                f"{exclude}; choose another --out")
     entries = tuple(Entry(str(p), p, {}, mapping, r_eff_m) for p in files)
     return Campaign(source, kind, entries, ())
