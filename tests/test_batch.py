@@ -9,6 +9,7 @@ without a current sensor; one broken file. Truth comes from each trace's truth.j
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -128,13 +129,28 @@ def test_the_planted_change_is_found(campaign, first_run):
     assert row["n_traces"] == 5 and row["tau_low_90"] <= row["tau"] <= row["tau_high_90"]
 
 
-def test_a_rerun_resumes_without_fitting(campaign, first_run):
+def test_a_rerun_resumes_without_fitting(campaign, first_run, tmp_path):
     _, out, args = first_run
     before = pd.read_parquet(out / "results.parquet")
     again = runner.invoke(app, args)
     assert again.exit_code == 3
     assert "6 reused, 0 fitted" in again.stdout
     pd.testing.assert_frame_equal(pd.read_parquet(out / "results.parquet"), before)
+    # the same campaign as a Parquet manifest: the same traces, nothing to fit
+    manifest = pd.read_csv(campaign / "manifest.csv")
+    manifest.to_parquet(campaign / "manifest.parquet")
+    same = runner.invoke(app, ["batch", str(campaign / "manifest.parquet"), "--out", str(out)])
+    assert same.exit_code == 3 and "6 reused, 0 fitted" in same.stdout
+    # a per-row pad radius is a new setting for that trace only: it alone is refitted
+    manifest["r_eff_m"] = [0.16, None, None, None, None, None]
+    manifest.to_csv(campaign / "radius.csv", index=False)
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    one = runner.invoke(app, ["batch", str(campaign / "radius.csv"), "--out", str(copy)])
+    assert one.exit_code == 3 and "5 reused, 1 fitted" in one.stdout
+    table = pd.read_parquet(copy / "results.parquet").set_index("trace")
+    assert (table.loc["v1_0.csv", "r_eff_m"] == 0.16).all()
+    assert (table.loc["v1_1.csv", "r_eff_m"] == 0.15).all()
 
 
 def test_a_dask_cluster_of_processes_gives_the_same_table(campaign, first_run, tmp_path):
@@ -143,7 +159,7 @@ def test_a_dask_cluster_of_processes_gives_the_same_table(campaign, first_run, t
     _, out, _ = first_run
     remote = tmp_path / "remote"
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
+                      dashboard_address=":0") as cluster:
         got = runner.invoke(app, ["batch", str(campaign / "manifest.csv"), "--out", str(remote),
                                   "--group-by", "hardware", "--scheduler",
                                   cluster.scheduler_address])
@@ -166,7 +182,7 @@ def test_a_scheduler_without_workers_gives_up(campaign, tmp_path):
     from distributed import LocalCluster
 
     out = tmp_path / "out"
-    with LocalCluster(n_workers=0, processes=True, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=0, processes=True, dashboard_address=":0") as cluster:
         got = runner.invoke(app, ["batch", str(campaign), "--out", str(out), "--scheduler",
                                   cluster.scheduler_address, "--worker-timeout", "1"])
     assert got.exit_code == 2
