@@ -241,6 +241,31 @@ def test_a_folder_and_a_glob_are_campaigns_too(campaign, tmp_path):
     assert "own_out" not in " ".join(pd.read_csv(own / "results.csv")["trace"])
 
 
+def test_a_per_row_mapping_reads_a_log_with_other_names_and_units(campaign, first_run,
+                                                                  tmp_path):
+    _, out, _ = first_run
+    log = pd.read_csv(campaign / "v1_0.csv")
+    german = pd.DataFrame({
+        "Zeit": log["time_s"] * 1e3, "Spannung": log["voltage_V"], "Strom": log["current_A"] * 1e3,
+        "Winkel": np.deg2rad(log["theta_deg"]), "Kolbenweg": log["x_m"] * 1e3,
+        "Spannkraft": log["force_N"] / 1e3, "Bremsmoment": log["torque_Nm"],
+    })
+    german.to_csv(tmp_path / "log.csv", index=False, float_format="%.17g")
+    mapping = Path(__file__).parents[1] / "datasets" / "mapping_example.toml"
+    pd.DataFrame({"path": ["log.csv"], "map": [str(mapping)]}).to_csv(tmp_path / "m.csv",
+                                                                      index=False)
+    got = runner.invoke(app, ["batch", str(tmp_path / "m.csv"), "--out", str(tmp_path / "o")])
+    assert got.exit_code == 0, got.output
+    mine = pd.read_csv(tmp_path / "o" / "results.csv").set_index("parameter")
+    theirs = pd.read_parquet(out / "results.parquet")
+    theirs = theirs[theirs["trace"] == "v1_0.csv"].set_index("parameter")
+    for name in ("a", "b", "c", "mu"):
+        assert mine.loc[name, "estimate"] == pytest.approx(theirs.loc[name, "estimate"],
+                                                           rel=1e-6)
+    doc = json.loads((tmp_path / "o" / "batch.json").read_text())
+    assert doc["inputs"][0]["map_sha256"] is not None
+
+
 # ---------------------------------------------------------------- random effects
 
 

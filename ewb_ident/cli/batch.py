@@ -151,7 +151,6 @@ def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, A
     from importlib.metadata import PackageNotFoundError, version
 
     import ewb_ident
-    from ewb_ident.data.campaign import file_hash
     from ewb_ident.inference.batch import record_path
 
     versions = {"ewb_ident": ewb_ident.__version__, "python": platform.python_version()}
@@ -162,11 +161,11 @@ def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, A
             versions[dist] = None
     inputs = []
     for e, job, rec in zip(campaign.entries, jobs, records, strict=True):
-        side = e.path.with_suffix(".json")
         inputs.append({
-            "trace": e.trace, "path": str(e.path), "sha256": file_hash(e.path),
-            "sidecar_sha256": file_hash(side) if side.is_file() else None,
-            "map": None if e.mapping is None else str(e.mapping), "r_eff_m": e.r_eff_m,
+            "trace": e.trace, "path": str(e.path), "sha256": job.hashes["trace_sha256"],
+            "sidecar_sha256": job.hashes["sidecar_sha256"],
+            "map": None if e.mapping is None else str(e.mapping),
+            "map_sha256": job.hashes["mapping_sha256"], "r_eff_m": e.r_eff_m,
             "metadata": e.metadata, "key": job.key,
             "record": str(record_path(Path("."), job.key)), "status": rec["status"],
             "fit_seconds": rec.get("fit_seconds"),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,8 @@ class TraceJob:
     key
         Hash of the trace's bytes (table, sidecar, mapping) and these settings: a
         record under this key can be reused.
+    hashes
+        SHA-256 of the trace's table, sidecar and mapping files (``None``: no such file).
     """
 
     trace: str
@@ -56,6 +58,7 @@ class TraceJob:
     fill_gaps: bool
     check_units: bool
     key: str
+    hashes: dict[str, str | None] = field(default_factory=dict, compare=False)
 
 
 def make_job(entry: Entry, *, fill_gaps: bool, check_units: bool, version: str) -> TraceJob:
@@ -80,6 +83,7 @@ def make_job(entry: Entry, *, fill_gaps: bool, check_units: bool, version: str) 
         fill_gaps,
         check_units,
         key,
+        {k: identity[k] for k in ("trace_sha256", "sidecar_sha256", "mapping_sha256")},
     )
 
 
