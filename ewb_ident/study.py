@@ -193,14 +193,9 @@ def make_trace(case: Case, params=None):
     noise = rig.SensorNoise(
         **{f.name: getattr(base, f.name) * setting["noise_scale"] for f in dataclasses.fields(base)}
     )
-    profile, extra = setting["profile"], {}
-    if profile == "through_c":  # position control to x = c + 0.3 a: past full clamping
-        profile = "position"
-        extra["target_deg"] = rig.theta_for_gap(params, params.c + 0.3 * params.a)
     return rig.simulate_rig(
         params,
-        profile=profile,
-        **extra,
+        profile=setting["profile"],
         sample_rate_hz=float(setting["sample_rate_hz"]),
         duration_s=float(setting["duration_s"]),
         effects=tuple(setting["effects"]),

@@ -320,3 +320,14 @@ def test_simulate_set_refuses_bad_settings(tmp_path, setting, message):
     assert got.exit_code == 2
     lines = got.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0] and not out.exists()
+
+
+def test_simulate_through_c_drives_the_piston_past_c(tmp_path):
+    out = tmp_path / "t.csv"
+    got = runner.invoke(app, ["simulate", str(out), "--profile", "through_c", "--set", "c=1e-3"])
+    assert got.exit_code == 0, got.output
+    truth = json.loads(out.with_suffix(".truth.json").read_text())
+    x = pd.read_csv(out)["x_m"]
+    p = truth["params"]
+    assert truth["profile"]["kind"] == "through_c"
+    assert x.max() > p["c"] + 0.2 * p["a"]  # held at c + 0.3 a, less the sensor noise

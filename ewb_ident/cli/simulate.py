@@ -15,7 +15,11 @@ from ewb_ident.cli.options import app, check_out, fail
 def simulate(
     out: Annotated[Path, typer.Argument(help="Trace file to write (.csv or .parquet).")],
     profile: Annotated[
-        str, typer.Option(help="steps (open-loop, as the seed), position, or staircase.")
+        str,
+        typer.Option(
+            help="steps (open-loop, as the seed), position (to x = c - 0.3 a), through_c "
+            "(to x = c + 0.3 a: through full clamping, which pins down a, b, c) or staircase."
+        ),
     ] = "steps",
     rate: Annotated[float, typer.Option(help="Sample rate, Hz (100-1000).")] = 200.0,
     duration: Annotated[float, typer.Option(help="Length of the trace, s.")] = 3.0,
