@@ -193,14 +193,9 @@ def make_trace(case: Case, params=None):
     noise = rig.SensorNoise(
         **{f.name: getattr(base, f.name) * setting["noise_scale"] for f in dataclasses.fields(base)}
     )
-    profile, extra = setting["profile"], {}
-    if profile == "through_c":  # position control to x = c + 0.3 a: past full clamping
-        profile = "position"
-        extra["target_deg"] = rig.theta_for_gap(params, params.c + 0.3 * params.a)
     return rig.simulate_rig(
         params,
-        profile=profile,
-        **extra,
+        profile=setting["profile"],
         sample_rate_hz=float(setting["sample_rate_hz"]),
         duration_s=float(setting["duration_s"]),
         effects=tuple(setting["effects"]),
@@ -327,8 +322,9 @@ def run_study(
     study
         The parsed definition.
     scheduler
-        Address of a Dask distributed scheduler (``tcp://host:8786``); ``None`` runs the
-        cases in this process, one after the other.
+        Address of a Dask distributed scheduler (``tcp://host:8786``), a cluster object,
+        or a connected ``distributed.Client`` (:func:`connect`); ``None`` runs the cases
+        in this process, one after the other.
     progress
         Called as ``progress(done, total)`` after each case.
     """
@@ -336,22 +332,188 @@ def run_study(
 
     cases = study.cases()
     rows: list[dict[str, Any]] = []
-    if scheduler is None:
-        for k, case in enumerate(cases):
-            rows += run_case(case)
+    own = scheduler is not None and not hasattr(scheduler, "submit")  # not a Client
+    client = connect(scheduler) if own else scheduler
+    try:
+        for k, (_, got) in enumerate(run_tasks(run_case, cases, client=client)):
+            rows += got
             if progress:
                 progress(k + 1, len(cases))
-    else:
-        from distributed import Client, as_completed
-
-        with Client(scheduler) as client:
-            futures = client.map(run_case, cases, pure=False)
-            for k, fut in enumerate(as_completed(futures)):
-                rows += fut.result()
-                if progress:
-                    progress(k + 1, len(cases))
+    finally:
+        if own:
+            client.close()
     table = pd.DataFrame(rows)
     return table.sort_values(["case"] + (["parameter"] if "parameter" in table else []))
+
+
+# ----------------------------------------------------------------------------- Dask
+
+#: Seconds to wait for a Dask scheduler to answer before giving up.
+CONNECT_TIMEOUT_S = 5.0
+#: Seconds to wait for a first worker when the scheduler has none.
+WORKER_TIMEOUT_S = 120.0
+
+
+class ClusterError(RuntimeError):
+    """A Dask scheduler that does not answer, or has no worker in time."""
+
+
+def scheduler_address(scheduler: Any) -> str:
+    """The address of a scheduler given as a string, a ``distributed.Client`` or a
+    cluster object (``LocalCluster``, ``SSHCluster`` ...)."""
+    if isinstance(scheduler, str):
+        return scheduler
+    address = getattr(scheduler, "scheduler_address", None)
+    if address is None and getattr(scheduler, "scheduler", None) is not None:
+        address = scheduler.scheduler.address
+    if not isinstance(address, str):
+        raise ClusterError(f"{scheduler!r}: not a scheduler address, Client or cluster")
+    return address
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Open and close a TCP connection to a ``tcp://host:port`` address: a refused or
+    unroutable one fails at once, where the Dask client retries until its timeout."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(address if "://" in address else f"tcp://{address}")
+    if parts.scheme == "tcp" and parts.hostname and parts.port:
+        with socket.create_connection((parts.hostname, parts.port), timeout=timeout):
+            pass
+
+
+def connect(
+    scheduler: Any,
+    *,
+    connect_timeout: float = CONNECT_TIMEOUT_S,
+    worker_timeout: float = WORKER_TIMEOUT_S,
+    say: Callable[[str], None] | None = None,
+):
+    """A new ``distributed.Client`` of ``scheduler`` with at least one worker.
+
+    Parameters
+    ----------
+    scheduler
+        Address (``tcp://host:8786``), ``Client`` or cluster object.
+    connect_timeout
+        Seconds to wait for the scheduler to answer.
+    worker_timeout
+        Seconds to wait for a first worker when it has none.
+    say
+        Told (one line) when the scheduler has no worker yet and the wait begins.
+
+    Raises
+    ------
+    ClusterError
+        The scheduler does not answer in ``connect_timeout``, or no worker joins in
+        ``worker_timeout`` (the message names the address and what to do).
+    """
+    from distributed import Client
+
+    address = scheduler_address(scheduler)
+    try:
+        _probe(address, connect_timeout)
+        client = Client(address, timeout=f"{connect_timeout}s")
+    except Exception as err:  # OSError, TimeoutError, ValueError of a malformed address
+        text = " ".join(str(err).split()) or type(err).__name__
+        raise ClusterError(
+            f"--scheduler {address}: no Dask scheduler answered ({text}; waited at most "
+            f"{connect_timeout:g} s); start one (`dask scheduler`) or check the address"
+        ) from None
+    if not client.scheduler_info().get("workers"):
+        if say is not None:
+            say(f"waiting up to {worker_timeout:g} s for a worker to join {address}")
+        try:
+            client.wait_for_workers(1, timeout=worker_timeout)
+        except TimeoutError:
+            client.close()
+            raise ClusterError(
+                f"--scheduler {address}: no worker joined within {worker_timeout:g} s; start "
+                f"workers (`dask worker {address}`) or raise --worker-timeout"
+            ) from None
+    return client
+
+
+def cluster_description(client) -> dict[str, Any]:
+    """Where tasks run: the scheduler's address and its workers (count, addresses)."""
+    if client is None:
+        return {"kind": "in-process", "address": None, "workers": 1}
+    workers = sorted(client.scheduler_info().get("workers", {}))
+    return {"kind": "dask", "address": client.scheduler.address, "workers": len(workers),
+            "worker_addresses": workers}
+
+
+def run_tasks(func: Callable[[Any], Any], items: list[Any], *, client=None):
+    """Run ``func`` on each item, in this process (``client`` None, in order) or on a
+    Dask cluster (as they complete); yields ``(index, result)``."""
+    if client is None:
+        for k, item in enumerate(items):
+            yield k, func(item)
+        return
+    from distributed import as_completed
+
+    futures = client.map(func, items, pure=False)
+    index = {f.key: k for k, f in enumerate(futures)}
+    for fut in as_completed(futures):
+        yield index[fut.key], fut.result()
+
+
+def run_batch(
+    jobs: list,
+    out_dir: str | Path,
+    *,
+    client=None,
+    progress: Callable[[int, int, dict[str, Any], bool], None] | None = None,
+) -> tuple[list[dict[str, Any]], int]:
+    """Fit every trace of a batch, reusing the records an earlier run kept.
+
+    Parameters
+    ----------
+    jobs
+        :class:`ewb_ident.inference.batch.TraceJob` s, in campaign order.
+    out_dir
+        The batch's folder: each trace's record is kept in ``traces/<key>.json`` as
+        soon as it is done, and read back instead of fitting again when its key (the
+        files' hashes and the settings) is unchanged.
+    client
+        A ``distributed.Client`` (see :func:`connect`); ``None`` fits in this process,
+        one trace after the other, reusing the compiled programs.
+    progress
+        Called as ``progress(done, total, record, reused)`` after each trace.
+
+    Returns
+    -------
+    records, reused
+        The records in campaign order, and how many were reused.
+    """
+    import json
+
+    from ewb_ident.data.outputs import null_nonfinite, write_json
+    from ewb_ident.inference.batch import fit_job, record_path
+
+    records: list[dict[str, Any] | None] = [None] * len(jobs)
+    todo = []
+    for k, job in enumerate(jobs):
+        try:
+            kept = json.loads(record_path(out_dir, job.key).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            todo.append(k)
+            continue
+        records[k] = kept | {"trace": job.trace}
+        if progress:
+            progress(k + 1 - len(todo), len(jobs), records[k], True)
+    reused = len(jobs) - len(todo)
+    record_path(out_dir, "x").parent.mkdir(parents=True, exist_ok=True)
+    for n, (i, record) in enumerate(
+        run_tasks(fit_job, [jobs[k] for k in todo], client=client), start=1
+    ):
+        k = todo[i]
+        records[k] = null_nonfinite(record)
+        write_json(record_path(out_dir, jobs[k].key), records[k])
+        if progress:
+            progress(reused + n, len(jobs), records[k], False)
+    return [r for r in records if r is not None], reused
 
 
 def summarise(study: Study, table) -> str:

@@ -19,7 +19,7 @@ from ewb_ident.cli.options import app
 # (the order of ``ewb-ident --help``).
 # isort: off
 from ewb_ident.cli import fit, simulate, sample, study, report  # noqa: F401
-from ewb_ident.cli import diagnose, compare, validate  # noqa: F401
+from ewb_ident.cli import diagnose, compare, validate, batch  # noqa: F401
 # isort: on
 
 
@@ -78,12 +78,12 @@ def main() -> None:
     signal.signal(signal.SIGTERM, _interrupted)
 
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
-    if command != "study":
-        # Only ``study --scheduler`` uses dask. Where it is installed, xarray and ArviZ
-        # import it, and dask.distributed, for every array they make (0.4-0.5 s of
-        # ``sample``, for arrays that are all NumPy). A ``None`` in ``sys.modules``
-        # makes ``import dask`` raise ImportError, which both take for "no dask"; the
-        # files are the same (tests/test_posterior.py).
+    if command not in ("study", "batch"):
+        # Only ``study --scheduler`` and ``batch --scheduler`` use dask. Where it is
+        # installed, xarray and ArviZ import it, and dask.distributed, for every array
+        # they make (0.4-0.5 s of ``sample``, for arrays that are all NumPy). A ``None``
+        # in ``sys.modules`` makes ``import dask`` raise ImportError, which both take for
+        # "no dask"; the files are the same (tests/test_posterior.py).
         sys.modules.setdefault("dask", None)
     import jax
 

@@ -178,13 +178,14 @@ def assignments(text: str | None, option: str) -> dict[str, float]:
 
 
 def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):
-    import dataclasses
     import math
 
+    from ewb_ident.data.campaign import R_EFF_RANGE_M, with_pad_radius
     from ewb_ident.data.readers import read_trace
 
-    if r_eff is not None and not (math.isfinite(r_eff) and 0.02 <= r_eff <= 0.5):
-        fail(f"--r-eff must be a pad radius within 0.02 to 0.5 m, got {r_eff!r}")
+    lo, hi = R_EFF_RANGE_M
+    if r_eff is not None and not (math.isfinite(r_eff) and lo <= r_eff <= hi):
+        fail(f"--r-eff must be a pad radius within {lo} to {hi} m, got {r_eff!r}")
     out = []
     for p in paths:
         tr = read_trace(
@@ -196,10 +197,7 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
         )
         if tr.sidecar.get("_csv_dialect"):
             typer.echo(f"{p}: read as {tr.sidecar['_csv_dialect']}", err=True)
-        if r_eff is not None:
-            side = dict(tr.sidecar) | {"r_eff_m": float(r_eff), "_r_eff_source": "--r-eff"}
-            tr = dataclasses.replace(tr, sidecar=side)
-        out.append(tr)
+        out.append(with_pad_radius(tr, r_eff))
     return out
 
 

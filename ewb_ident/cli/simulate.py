@@ -15,7 +15,11 @@ from ewb_ident.cli.options import app, check_out, fail
 def simulate(
     out: Annotated[Path, typer.Argument(help="Trace file to write (.csv or .parquet).")],
     profile: Annotated[
-        str, typer.Option(help="steps (open-loop, as the seed), position, or staircase.")
+        str,
+        typer.Option(
+            help="steps (open-loop, as the seed), position (to x = c - 0.3 a), through_c "
+            "(to x = c + 0.3 a: through full clamping, which pins down a, b, c) or staircase."
+        ),
     ] = "steps",
     rate: Annotated[float, typer.Option(help="Sample rate, Hz (100-1000).")] = 200.0,
     duration: Annotated[float, typer.Option(help="Length of the trace, s.")] = 3.0,
@@ -33,6 +37,14 @@ def simulate(
     params: Annotated[
         Path | None,
         typer.Option("--params", help="fit.json whose fitted parameters the rig takes."),
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="NAME=VALUE, SI units: one rig parameter on top of the defaults or --params "
+            "(repeat for several), e.g. --set c=1.007e-3.",
+        ),
     ] = None,
 ) -> None:
     """Synthetic rig trace with documented truth: writes OUT, its sidecar and OUT.truth.json."""
@@ -66,6 +78,7 @@ def simulate(
             fitted = load_params(params).as_dict()
         except ValidateError as err:
             fail(str(err))
+    fitted |= _settings(set_ or [])
     try:
         rig_params = rig.RigParams(**fitted)
         if vary > 0:
@@ -91,3 +104,32 @@ def simulate(
     write_trace(trace, out)
     write_json(truth_path, truth)
     typer.echo(f"wrote {out} ({trace.n} samples at {trace.sample_rate_hz:g} Hz) and {truth_path}")
+
+
+def _settings(items: list[str]) -> dict[str, float]:
+    """``--set NAME=VALUE`` pairs: rig parameters, finite numbers inside the fit's bounds
+    (the rig's own checks, :class:`ewb_ident.rig.RigParams`, follow)."""
+    import math
+
+    from ewb_ident.model.params import PARAMS
+    from ewb_ident.rig import VARIED_PARAMS
+
+    allowed = (*VARIED_PARAMS, "r_eff_m")
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, text = (part.strip() for part in item.partition("="))
+        if not sep or not name:
+            fail(f"--set takes NAME=VALUE, e.g. --set c=1.0e-3; got {item!r}")
+        if name not in allowed:
+            fail(f"--set {item}: unknown parameter {name!r}; the rig's are {', '.join(allowed)}")
+        try:
+            value = float(text)
+        except ValueError:
+            fail(f"--set {item}: {text!r} is not a number; give the value in SI units")
+        info = PARAMS.get(name)
+        if not math.isfinite(value) or (info is not None and not info.inside(value)):
+            unit = "" if info is None or info.unit == "1" else f" {info.unit}"
+            bounds = f" within ({info.lower:g}, {info.upper:g}){unit}" if info else ""
+            fail(f"--set {item}: {name} must be a finite number{bounds}, got {text}")
+        out[name] = value
+    return out

@@ -25,12 +25,30 @@ def study(
     from rich.progress import Progress
 
     from ewb_ident.data.outputs import atomic_write
-    from ewb_ident.study import StudyError, load_study, run_script, run_study, summarise
+    from ewb_ident.study import (
+        StudyError,
+        cluster_description,
+        load_study,
+        run_script,
+        run_study,
+        summarise,
+    )
 
     try:
         spec = load_study(definition)
     except StudyError as err:
         fail(str(err))
+    client = None
+    if scheduler is not None and spec.script is None:
+        from ewb_ident.study import ClusterError, connect
+
+        try:  # before anything is written
+            client = connect(scheduler, say=lambda text: typer.echo(text, err=True))
+        except ClusterError as err:
+            fail(str(err))
+        info = cluster_description(client)
+        typer.echo(f"running on the Dask cluster at {info['address']} with {info['workers']} "
+                   "worker(s)")
     out.mkdir(parents=True, exist_ok=True)
     with Progress(transient=True) as bar:
         job = bar.add_task(f"study {spec.name}", total=len(spec.cases()) or None)
@@ -41,7 +59,11 @@ def study(
         if spec.script is not None:
             table, report = run_script(spec, out, progress=progress)
         else:
-            table = run_study(spec, scheduler=scheduler, progress=progress)
+            try:
+                table = run_study(spec, scheduler=client, progress=progress)
+            finally:
+                if client is not None:
+                    client.close()
             report = summarise(spec, table)
     atomic_write(
         [

@@ -318,15 +318,23 @@ def _changes(names, old, new, variances, tolerance) -> list[ParameterChange]:
     ]
 
 
-def _change(name: str, old: float, new: float, var: float, tolerance) -> ParameterChange:
-    """One change, its 90 % interval and ``P(|delta| > tol)``."""
-    d = new - old
-    se = math.sqrt(var) if var > 0 else None
+def practical_tolerance(name: str, old: float, tolerance: Mapping[str, float] | None) -> float:
+    """The change of ``name`` below which it is treated as no practical change, SI
+    units: ``tolerance[name]`` where given, else :data:`DEFAULT_TOLERANCE` of the old
+    value (at least of the parameter's scale for signed parameters near zero)."""
     tol = (tolerance or {}).get(name)
     if tol is None:
         info = PARAMS.get(name)
         floor = info.scale if info is not None and info.transform == "affine" else 0.0
         tol = DEFAULT_TOLERANCE * max(abs(old), floor)
+    return float(tol)
+
+
+def _change(name: str, old: float, new: float, var: float, tolerance) -> ParameterChange:
+    """One change, its 90 % interval and ``P(|delta| > tol)``."""
+    d = new - old
+    se = math.sqrt(var) if var > 0 else None
+    tol = practical_tolerance(name, old, tolerance)
     if se:
         p = _phi((d - tol) / se) + _phi((-d - tol) / se)
         lo, hi = d - 1.645 * se, d + 1.645 * se

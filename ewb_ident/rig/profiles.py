@@ -40,6 +40,13 @@ CONTROLLER_DEFAULTS: dict[str, float] = {
 }
 
 
+#: Profiles under PI position control (the others are open-loop voltage).
+CLOSED_LOOP = ("position", "through_c", "staircase")
+#: Where the position profiles hold the piston, in bell half-widths ``a`` from ``c``:
+#: ``position`` this far short of it, ``through_c`` this far past it.
+THROUGH_C_PAST_A = 0.3
+
+
 def _min_jerk(u: np.ndarray) -> np.ndarray:
     u = np.clip(u, 0.0, 1.0)
     return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
@@ -88,9 +95,9 @@ def drive_signal(
     duration = float(t[-1])
     if profile == "steps":
         return _steps(t, options, duration)
-    if profile in ("position", "staircase"):
-        if profile == "position":
-            o, moves = _position_moves(params, theta0_deg, options, duration)
+    if profile in CLOSED_LOOP:
+        if profile in ("position", "through_c"):
+            o, moves = _position_moves(params, theta0_deg, options, duration, profile)
         else:
             o, moves = _staircase_moves(params, theta0_deg, options, duration)
         _check_controller(profile, o)
@@ -100,8 +107,8 @@ def drive_signal(
         volts = np.asarray(o["voltage_V"], dtype=np.float64)
         return volts, {"kind": profile, "voltage_V": volts.tolist()}
     raise RigError(
-        f"unknown profile {profile!r}; use 'steps', 'position', 'staircase' or 'voltage' "
-        "(with voltage_V=array)"
+        f"unknown profile {profile!r}; use 'steps', 'position', 'through_c', 'staircase' or "
+        "'voltage' (with voltage_V=array)"
     )
 
 
@@ -133,9 +140,11 @@ def _steps(t: np.ndarray, options: dict[str, Any], duration: float):
     return volts, {"kind": profile, **o}
 
 
-def _position_moves(params: RigParams, theta0_deg: float, options: dict[str, Any], duration):
-    """Apply, hold and release to a target angle (default: the piston 0.3 a short of c)."""
-    profile = "position"
+def _position_moves(
+    params: RigParams, theta0_deg: float, options: dict[str, Any], duration, profile: str
+):
+    """Apply, hold and release to a target angle (default: the piston 0.3 a short of c;
+    ``through_c``: 0.3 a past it, through full clamping)."""
     o = _take(
         options,
         {
@@ -148,7 +157,8 @@ def _position_moves(params: RigParams, theta0_deg: float, options: dict[str, Any
         profile,
     )
     if o["target_deg"] is None:
-        o["target_deg"] = theta_for_gap(params, params.c - 0.3 * params.a)
+        past = THROUGH_C_PAST_A if profile == "through_c" else -THROUGH_C_PAST_A
+        o["target_deg"] = theta_for_gap(params, params.c + past * params.a)
     check_finite(f"profile {profile!r}", target_deg=o["target_deg"])
     check_positive(f"profile {profile!r}", ramp_s=o["ramp_s"])
     check_nonnegative(f"profile {profile!r}", t_start_s=o["t_start_s"], hold_s=o["hold_s"])

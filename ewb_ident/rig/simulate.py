@@ -39,7 +39,7 @@ from ewb_ident.rig.params import (
     check_finite,
     check_positive,
 )
-from ewb_ident.rig.profiles import drive_signal
+from ewb_ident.rig.profiles import CLOSED_LOOP, drive_signal
 
 # --------------------------------------------------------------------------------------
 # The compiled simulator
@@ -327,6 +327,8 @@ def simulate_rig(
         ``t_apply_s``, ``t_hold_s``, ``t_release_s``), ``"position"`` (PI position
         control of an apply-hold-release reference; options ``target_deg`` (default: the
         angle where ``x = c - 0.3 a``), ``t_start_s``, ``ramp_s``, ``hold_s``),
+        ``"through_c"`` (the same, by default to ``x = c + 0.3 a``: through full clamping,
+        which pins down a, b and c),
         ``"staircase"`` (the same controller through increasing levels and back;
         options ``levels_deg``, ``t_start_s``, ``dwell_s``, ``peak_rate_deg_s``,
         ``min_ramp_s``) or ``"voltage"`` (``voltage_V=array``, one value per sample).
@@ -375,7 +377,7 @@ def simulate_rig(
     duration = float(t[-1])
 
     signal, resolved = drive_signal(profile, params, t, theta0_deg, dict(profile_options))
-    closed_loop = profile in ("position", "staircase")
+    closed_loop = profile in CLOSED_LOOP
 
     if FrictionSpeed.id in eff and not params.disc_varies:
         raise RigError(

@@ -1,0 +1,171 @@
+"""A campaign's parameters as a population: the random-effects combination of per-trace
+estimates, and the change of a parameter between two groups of traces.
+
+Each trace ``i`` gives an estimate ``y_i`` with a standard error ``s_i`` (the fit's
+robust one). The traces of a campaign are of several rig units, days and temperatures,
+so their true values differ: ``y_i = theta + u_i + e_i`` with ``u_i ~ N(0, tau^2)`` the
+trace-to-trace (unit-to-unit) spread and ``e_i ~ N(0, s_i^2)`` the measurement error.
+
+* ``tau^2`` by DerSimonian and Laird's moment estimator, ``theta`` as the mean weighted by
+  ``1 / (s_i^2 + tau^2)``;
+* the 90 % interval of ``theta`` by Hartung-Knapp-Sidik-Jonkman: a t interval with
+  ``k - 1`` degrees of freedom on the weighted residual variance (never narrower than the
+  DerSimonian-Laird standard error), which keeps its level with few traces where the
+  plain normal interval does not;
+* the 90 % interval of ``tau`` by the Q-profile (Viechtbauer 2007): the values of
+  ``tau^2`` at which the generalised Q statistic equals the 95 % and 5 % quantiles of
+  chi-square with ``k - 1`` degrees of freedom.
+
+A group change is the difference of two groups' means, each combined as above, with a
+Welch-Satterthwaite t interval; whether it changed is decided as
+:func:`ewb_ident.inference.compare.compare` decides it for two traces (the probability
+that the change exceeds the practical tolerance is above 0.95).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize, stats
+
+from ewb_ident.inference.compare import ParameterChange, practical_tolerance
+
+#: Probability of every interval here (two-sided).
+LEVEL = 0.90
+
+
+@dataclass(frozen=True)
+class Combined:
+    """The random-effects combination of one parameter's per-trace estimates (SI).
+
+    Attributes
+    ----------
+    n
+        Traces combined (those with a finite estimate and standard error).
+    mean, stderr, low90, high90
+        The population mean, its standard error (Hartung-Knapp) and 90 % interval.
+    df
+        Degrees of freedom of the mean's t interval (``n - 1``; ``inf``: one trace,
+        a normal interval on its own standard error).
+    tau, tau_low90, tau_high90
+        The spread between traces beyond their measurement errors, and its 90 %
+        Q-profile interval; ``None`` with fewer than two traces.
+    q
+        Cochran's Q (heterogeneity statistic), ``None`` with fewer than two traces.
+    """
+
+    n: int
+    mean: float
+    stderr: float
+    low90: float
+    high90: float
+    df: float
+    tau: float | None
+    tau_low90: float | None
+    tau_high90: float | None
+    q: float | None
+
+
+def _generalised_q(tau2: float, y: np.ndarray, v: np.ndarray) -> float:
+    w = 1.0 / (v + tau2)
+    mu = float(np.sum(w * y) / np.sum(w))
+    return float(np.sum(w * (y - mu) ** 2))
+
+
+def _q_profile(y: np.ndarray, v: np.ndarray, target: float) -> float:
+    """The ``tau^2 >= 0`` at which the generalised Q equals ``target`` (0 when even
+    ``tau^2 = 0`` gives less). Q falls monotonically in ``tau^2``."""
+    if _generalised_q(0.0, y, v) <= target:
+        return 0.0
+    hi = max(float(np.var(y)), float(np.max(v)))
+    while _generalised_q(hi, y, v) > target:
+        hi *= 10.0
+    return float(optimize.brentq(lambda t2: _generalised_q(t2, y, v) - target, 0.0, hi))
+
+
+def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Combined | None:
+    """Combine per-trace estimates of one parameter (see the module docstring).
+
+    Parameters
+    ----------
+    estimates, stderrs
+        Per trace, the estimate and its standard error, in the parameter's SI unit;
+        pairs with a missing, non-finite or non-positive standard error are left out.
+
+    Returns
+    -------
+    Combined or None
+        ``None`` when no trace is usable.
+    """
+    y = np.asarray(estimates, dtype=float)
+    s = np.asarray([np.nan if e is None else e for e in stderrs], dtype=float)
+    keep = np.isfinite(y) & np.isfinite(s) & (s > 0)
+    y, v = y[keep], s[keep] ** 2
+    k = int(y.size)
+    z = float(stats.norm.ppf(0.5 + LEVEL / 2))
+    if k == 0:
+        return None
+    if k == 1:
+        se = math.sqrt(float(v[0]))
+        m = float(y[0])
+        return Combined(1, m, se, m - z * se, m + z * se, math.inf, None, None, None, None)
+    w = 1.0 / v
+    mu_fixed = float(np.sum(w * y) / np.sum(w))
+    q = float(np.sum(w * (y - mu_fixed) ** 2))
+    denom = float(np.sum(w) - np.sum(w**2) / np.sum(w))
+    tau2 = max(0.0, (q - (k - 1)) / denom) if denom > 0 else 0.0
+    ws = 1.0 / (v + tau2)
+    mu = float(np.sum(ws * y) / np.sum(ws))
+    q_hk = float(np.sum(ws * (y - mu) ** 2)) / (k - 1)
+    se = math.sqrt(max(1.0, q_hk) / float(np.sum(ws)))
+    t = float(stats.t.ppf(0.5 + LEVEL / 2, k - 1))
+    upper_q = float(stats.chi2.ppf(0.5 + LEVEL / 2, k - 1))
+    lower_q = float(stats.chi2.ppf(0.5 - LEVEL / 2, k - 1))
+    tau_lo = math.sqrt(_q_profile(y, v, upper_q))
+    tau_hi = math.sqrt(_q_profile(y, v, lower_q))
+    return Combined(
+        k, mu, se, mu - t * se, mu + t * se, float(k - 1), math.sqrt(tau2), tau_lo, tau_hi, q
+    )
+
+
+def group_change(
+    name: str,
+    before: Combined,
+    after: Combined,
+    tolerance: Mapping[str, float] | None = None,
+) -> ParameterChange:
+    """The change of a parameter's population mean from one group of traces to another.
+
+    Parameters
+    ----------
+    name
+        The parameter (its default tolerance follows :func:`practical_tolerance`).
+    before, after
+        The two groups' combinations (:func:`random_effects`).
+    tolerance
+        Practical tolerance per parameter, SI units (default: 1 % of the ``before``
+        mean, as ``compare`` uses).
+
+    Returns
+    -------
+    ParameterChange
+        ``delta = after.mean - before.mean``, its standard error, 90 % Welch-Satterthwaite
+        t interval and ``P(|delta| > tolerance)``.
+    """
+    d = after.mean - before.mean
+    va, vb = before.stderr**2, after.stderr**2
+    se = math.sqrt(va + vb)
+    terms = sum(var**2 / g.df for var, g in ((va, before), (vb, after)) if math.isfinite(g.df))
+    df = (va + vb) ** 2 / terms if terms > 0 else math.inf
+    dist = stats.norm if not math.isfinite(df) else stats.t(df)
+    tol = practical_tolerance(name, before.mean, tolerance)
+    if se > 0:
+        half = float(dist.ppf(0.5 + LEVEL / 2)) * se
+        p = float(dist.cdf((d - tol) / se) + dist.cdf((-d - tol) / se))
+        lo, hi, sd = d - half, d + half, se
+    else:
+        p, lo, hi, sd = None, None, None, None
+    return ParameterChange(name, before.mean, after.mean, d, sd, lo, hi, tol, p)

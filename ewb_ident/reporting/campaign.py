@@ -1,0 +1,261 @@
+"""A batch's tables and its campaign report.
+
+* :func:`results_table`: the tidy table, one row per trace and free parameter (a failed
+  trace: one row), with the columns of ``shared/CONTRACTS.md`` (batch);
+* :func:`population_table`: per parameter (and per group), the random-effects mean and
+  the spread between traces (:mod:`ewb_ident.inference.population`);
+* :func:`changes_table`: per parameter, the change of every group against the first;
+* :func:`campaign_page`: the HTML report with a, b, c, mu against a metadata column or
+  the trace order, the flagged traces and the tables above.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ewb_ident.data.stages import CHANNELS
+from ewb_ident.inference.population import group_change, random_effects
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS
+from ewb_ident.reporting.html import CSS
+from ewb_ident.reporting.style import SHOWN_UNITS, png_bytes, subplots
+
+#: The results table's own columns, in order; the manifest's metadata columns come
+#: after ``trace``. ``message`` and ``r_eff_m`` are more than the contract asks.
+PARAM_COLUMNS = ("parameter", "unit", "estimate", "stderr", "low_90", "high_90",
+                 "interval_from", "converged", "status", "verdict", "findings")
+METRIC_COLUMNS = tuple(f"{ch}_nrmse_pct" for ch in CHANNELS)
+EXTRA_COLUMNS = ("message", "r_eff_m")
+RESULT_COLUMNS = ("trace", *PARAM_COLUMNS, *METRIC_COLUMNS, *EXTRA_COLUMNS)
+_FLOATS = ("estimate", "stderr", "low_90", "high_90", "r_eff_m", *METRIC_COLUMNS)
+#: Parameters the report plots (where the campaign fitted them).
+PLOTTED = ("a", "b", "c", "mu")
+
+
+def results_table(
+    records: Sequence[dict[str, Any]],
+    metadata: Sequence[dict[str, Any]],
+    metadata_columns: Sequence[str],
+) -> pd.DataFrame:
+    """The tidy results table (see the module docstring).
+
+    Parameters
+    ----------
+    records
+        Per trace, the record of :func:`ewb_ident.inference.batch.fit_job`.
+    metadata
+        Per trace, its metadata (the manifest's row), in the same order.
+    metadata_columns
+        The metadata columns, in the manifest's order.
+    """
+    rows = []
+    for rec, meta in zip(records, metadata, strict=True):
+        common = {"trace": rec["trace"], **{c: meta.get(c) for c in metadata_columns}}
+        tail = {
+            "converged": rec.get("converged"),
+            "status": rec["status"],
+            "verdict": None,  # the batch does not diagnose (yet): no verdict, no findings
+            "findings": None,
+            **{f"{ch}_nrmse_pct": rec["metrics"].get(ch) for ch in CHANNELS},
+            "message": rec.get("message"),
+            "r_eff_m": rec.get("r_eff_m"),
+        }
+        params = rec["params"] if rec["status"] != "error" else {}
+        if not params:
+            rows.append(common | dict.fromkeys(PARAM_COLUMNS[:7]) | tail)
+        for name, p in params.items():
+            rows.append(common | {"parameter": name} | p | tail)
+    order = ["trace", *metadata_columns, *RESULT_COLUMNS[1:]]
+    table = pd.DataFrame(rows, columns=order)
+    for col in _FLOATS:
+        table[col] = table[col].astype("float64")
+    table["converged"] = table["converged"].astype("boolean")
+    for col in ("trace", "parameter", "unit", "interval_from", "status", "verdict", "findings",
+                "message"):
+        table[col] = table[col].astype("string")
+    return table
+
+
+def _usable(results: pd.DataFrame) -> pd.DataFrame:
+    """Rows of traces whose fit converged within the acceptance (status ``ok``)."""
+    return results[(results["status"] == "ok") & results["parameter"].notna()]
+
+
+def _ordered(names) -> list[str]:
+    return sorted(set(names), key=lambda n: MODEL_PARAMS.index(n) if n in MODEL_PARAMS else 99)
+
+
+def population_table(results: pd.DataFrame, group_by: str | None = None) -> pd.DataFrame:
+    """Per parameter: the random-effects combination of the traces with status ``ok``;
+    with ``group_by``, also per group (``group`` column; ``"all"``: every trace)."""
+    ok = _usable(results)
+    groups: list[tuple[str, pd.DataFrame]] = [("all", ok)]
+    if group_by is not None:
+        groups += [(str(g), sub) for g, sub in ok.groupby(group_by, sort=True)]
+    rows = []
+    for label, sub in groups:
+        for name in _ordered(sub["parameter"]):
+            one = sub[sub["parameter"] == name]
+            comb = random_effects(one["estimate"].to_numpy(), one["stderr"].to_numpy(float))
+            if comb is None:
+                continue
+            rows.append({
+                "group": label, "parameter": name, "unit": PARAMS[name].unit,
+                "n_traces": comb.n, "mean": comb.mean, "stderr": comb.stderr,
+                "low_90": comb.low90, "high_90": comb.high90, "tau": comb.tau,
+                "tau_low_90": comb.tau_low90, "tau_high_90": comb.tau_high90, "q": comb.q,
+                "method": "DerSimonian-Laird, Hartung-Knapp mean interval, Q-profile tau",
+            })
+    return pd.DataFrame(rows)
+
+
+def changes_table(results: pd.DataFrame, group_by: str) -> pd.DataFrame:
+    """Per parameter, the change of each later group (sorted) against the first: the
+    groups' random-effects means, the difference with a 90 % interval, the practical
+    tolerance, ``P(|change| > tolerance)`` and whether it changed (that probability
+    above 0.95, as ``compare`` decides). Empty with fewer than two groups."""
+    ok = _usable(results)
+    ok = ok[ok[group_by].notna()]
+    labels = sorted(ok[group_by].unique(), key=str)
+    rows = []
+    for after in labels[1:]:
+        before = labels[0]
+        for name in _ordered(ok["parameter"]):
+            sides = []
+            for g in (before, after):
+                one = ok[(ok[group_by] == g) & (ok["parameter"] == name)]
+                sides.append(random_effects(one["estimate"].to_numpy(),
+                                            one["stderr"].to_numpy(float)))
+            if None in sides:
+                continue
+            ch = group_change(name, *sides)
+            rows.append({
+                "parameter": name, "unit": PARAMS[name].unit, "group_by": group_by,
+                "before": str(before), "after": str(after), "n_before": sides[0].n,
+                "n_after": sides[1].n, "before_mean": ch.old, "after_mean": ch.new,
+                "delta": ch.delta, "stderr": ch.stderr, "low_90": ch.low90,
+                "high_90": ch.high90, "delta_pct": 100 * ch.delta / ch.old if ch.old else None,
+                "tolerance": ch.tolerance, "p_changed": ch.p_changed, "changed": ch.changed,
+            })
+    table = pd.DataFrame(rows)
+    if not table.empty:  # what changed first, the largest evidence first
+        table = table.sort_values(["after", "changed", "p_changed"], ascending=[True, False,
+                                                                                  False])
+    return table.reset_index(drop=True)
+
+
+def flagged(results: pd.DataFrame) -> pd.DataFrame:
+    """One row per trace that failed, did not converge or is outside the acceptance."""
+    bad = results[results["status"] != "ok"]
+    return bad.drop_duplicates("trace")[["trace", "status", "message"]].reset_index(drop=True)
+
+
+def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None:
+    """a, b, c, mu per trace with their 90 % intervals, against a metadata column (its
+    values as categories) or the trace order; the population mean of each group as a
+    line. ``None`` when no trace has these parameters."""
+    ok = _usable(results)
+    names = [n for n in PLOTTED if n in set(ok["parameter"])]
+    if not names:
+        return None
+    traces = list(dict.fromkeys(results["trace"]))
+    if against is not None:
+        cats = sorted(ok[against].dropna().unique(), key=str)
+        ok = ok[ok[against].notna()]
+    fig, axes = subplots(len(names), 1, figsize=(7.5, 2.1 * len(names) + 0.6), squeeze=False)
+    for ax, name in zip(axes[:, 0], names, strict=True):
+        unit, k = SHOWN_UNITS.get(PARAMS[name].unit, (PARAMS[name].unit, 1.0))
+        one = ok[ok["parameter"] == name]
+        if against is None:
+            x = np.array([traces.index(t) for t in one["trace"]], dtype=float)
+        else:
+            pos = {c: j for j, c in enumerate(cats)}
+            x = np.array([pos[v] for v in one[against]], dtype=float)
+            rank = one.groupby(against).cumcount().to_numpy()
+            size = one.groupby(against)[against].transform("size").to_numpy()
+            x = x + 0.3 * (rank - (size - 1) / 2) / np.maximum(size, 1)
+            for c in cats:
+                sub = one[one[against] == c]
+                comb = random_effects(sub["estimate"].to_numpy(), sub["stderr"].to_numpy(float))
+                if comb is not None:
+                    j = pos[c]
+                    ax.fill_between([j - 0.25, j + 0.25], comb.low90 * k, comb.high90 * k,
+                                    color="#c8d8f0", lw=0)
+                    ax.plot([j - 0.25, j + 0.25], [comb.mean * k] * 2, color="#246", lw=1.5)
+        y = one["estimate"].to_numpy() * k
+        err = np.vstack([y - one["low_90"].to_numpy() * k, one["high_90"].to_numpy() * k - y])
+        ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, color="#b22", capsize=2)
+        ax.set_ylabel(f"{name} ({unit})" if unit != "1" else name)
+        if against is not None:
+            ax.set_xticks(range(len(cats)), [str(c) for c in cats])
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel(against if against is not None else "trace (campaign order)")
+    fig.suptitle("Per-trace estimates with 90 % intervals"
+                 + ("; group means (random effects) with 90 % intervals" if against else ""),
+                 fontsize=9)
+    fig.set_layout_engine("constrained")
+    return png_bytes(fig)
+
+
+def _html_table(frame: pd.DataFrame) -> str:
+    if frame.empty:
+        return "<p class=\"small\">none</p>"
+    return frame.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.4g}",
+                         border=0, escape=True)
+
+
+def campaign_page(
+    results: pd.DataFrame,
+    population: pd.DataFrame,
+    changes: pd.DataFrame | None,
+    *,
+    against: str | None,
+    figure: str | None,
+    provenance: dict[str, Any],
+) -> str:
+    """The campaign report (HTML): headline, flagged traces, the parameters against
+    ``against`` (the figure file ``figure``, beside the page), population and changes."""
+    e = html.escape
+    bad = flagged(results)
+    n = results["trace"].nunique()
+    where = provenance["where"]
+    ran = ("in this process" if where["kind"] == "in-process" else
+           f"on the Dask cluster {where['address']} ({where['workers']} workers)")
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>Campaign "
+        f"{e(provenance['source'])}</title><style>{CSS}</style></head><body>",
+        f"<h1>Campaign: {e(provenance['source'])}</h1>",
+        f"<p>{n} traces, whole-chain least squares, {ran}; "
+        f"{provenance['counts']['reused']} reused, {provenance['counts']['fitted']} fitted. "
+        "Intervals are 90 % everywhere (per trace: estimate ± 1.645 robust standard errors).</p>",
+    ]
+    if len(bad):
+        parts += [f"<div class='warn'>{len(bad)} of {n} traces flagged (failed, not converged "
+                  "or outside the acceptance); they are left out of the population and the "
+                  "changes.</div>", _html_table(bad)]
+    else:
+        parts.append(f"<div class='ok'>All {n} traces converged within the acceptance.</div>")
+    if changes is not None:
+        moved = changes[changes["changed"]] if not changes.empty else changes
+        said = (", ".join(f"{r.parameter} ({r.before} → {r.after}: {r.delta_pct:+.1f} %)"
+                          for r in moved.itertuples()) or "no parameter")
+        parts += [f"<h2>Changes by {e(changes.attrs.get('group_by', ''))}</h2>",
+                  f"<p>Changed (P(|change| > tolerance) > 0.95): {e(said)}.</p>",
+                  _html_table(changes)]
+    if figure is not None:
+        parts += ["<h2>a, b, c, μ across the campaign</h2>",
+                  f"<img src='{e(figure)}' alt='a, b, c, mu per trace'>"]
+    parts += ["<h2>Population (random effects)</h2>",
+              "<p class='small'>mean: DerSimonian–Laird weights, Hartung–Knapp 90 % interval; "
+              "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
+              "interval. Only traces with status ok.</p>",
+              _html_table(population),
+              "<h2>Files</h2><p>results.csv / results.parquet (one row per trace and "
+              "parameter), population.*, changes.*, batch.json (settings, inputs with hashes, "
+              f"where it ran, versions).</p><p class='small'>{e(provenance['command'])}</p>",
+              "</body></html>"]
+    return "\n".join(parts)
