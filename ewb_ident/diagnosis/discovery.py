@@ -30,8 +30,9 @@ model something is missing and what it depends on, without a list of candidate p
    that only fits the data it saw is not kept. Places are ranked by held-out residual.
 5. **Distilled.** On the best place, sparse regression over a generated library of
    the chosen inputs (powers, saturations, signs, hinges, one-sided and dead-zone
-   forms of signed inputs, harmonics at the period the learned term chose, products) keeps the smallest expression that keeps 90 % of the
-   learned term's held-out improvement.
+   forms of signed inputs, harmonics at the period the learned term chose, products)
+   keeps the smallest expression that keeps 90 % of the learned term's held-out
+   improvement.
 
 The distilled term is then fitted by nonlinear least squares through the JAX model (as
 a :class:`~ewb_ident.mechanisms.learned.LearnedTerm`, with the stage's parameters), and
