@@ -631,12 +631,14 @@ def _not_generalised(disc: Discovery) -> str:
             f"({', '.join(p.place for p in disc.places)}) improves held-out data "
             f"({disc.method}): unexplained"
         )
-    ins = 100.0 * (pf.insample_before - pf.insample_after) / max(pf.insample_before, 1e-300)
+    d = disc.distilled if disc.learned.generalises else pf
+    what = "its distilled equation" if d is disc.distilled else "it"
+    ins = 100.0 * (d.insample_before - d.insample_after) / max(d.insample_before, 1e-300)
     return (
         f"{disc.stage} stage: a term learned at {disc.place} depending on "
-        f"{', '.join(disc.depends_on) or ', '.join(pf.groups)} lowers the residual it was "
-        f"fitted to by {ins:.0f} % but held-out data ({disc.method}) by only "
-        f"{disc.distilled.improvement_pct:.0f} %: it does not generalise and is not a finding"
+        f"{', '.join(disc.depends_on) or ', '.join(pf.groups)}: {what} lowers the residual "
+        f"it was fitted to by {ins:.0f} % and held-out data ({disc.method}) by "
+        f"{d.improvement_pct:.0f} %, but {d.why_not}: it is not a finding"
     )
 
 

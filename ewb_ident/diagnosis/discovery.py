@@ -264,8 +264,25 @@ class PlaceFit:
     def generalises(self) -> bool:
         """Held-out score and share beyond their thresholds, and consistent over the
         folds (:meth:`Design.consistent`)."""
-        consistent = self.folds_improved >= self.n_folds
-        return self.score <= -HELDOUT_BIC and self.share >= MIN_HELDOUT_SHARE and consistent
+        return not self.why_not
+
+    @property
+    def why_not(self) -> str:
+        """Why the term does not generalise, in words (``""``: it does)."""
+        if self.folds_improved < self.n_folds:
+            return (
+                f"it behaves as physics in only {self.folds_improved} of the {self.n_folds} "
+                "held-out folds (lowering each fold that shows the mismatch, not raising "
+                "the others)"
+            )
+        if self.share < MIN_HELDOUT_SHARE:
+            return (
+                f"it removes only {100 * max(self.share, 0.0):.0f} % of the held-out excess "
+                f"over the noise (at least {100 * MIN_HELDOUT_SHARE:.0f} % is needed)"
+            )
+        if self.score > -HELDOUT_BIC:
+            return f"its held-out evidence is weak (score {self.score:.1f} > -{HELDOUT_BIC:g})"
+        return ""
 
 
 def _inputs_of(col: Column) -> tuple[str, ...]:
