@@ -509,6 +509,12 @@ LOCAL: dict[str, tuple[str, ...]] = {
 }
 
 
+#: Signals a place's term cannot depend on, by physics: a load torque on the motor acts
+#: through the mechanics (the motor's states, the load, temperature, time); the voltage
+#: the driver applies reaches the shaft only through the current, which is an input.
+NOT_INPUTS: dict[str, tuple[str, ...]] = {"motor.mechanical": ("voltage", "voltage_rate")}
+
+
 def _is_local(group: str, local: Sequence[str]) -> bool:
     name = group.partition("@")[0]
     return any(name == s or name.startswith(s + "_") for s in local if s)
@@ -662,6 +668,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
         model = model_channels(ses, fit)
         sig = input_signals(trace, model, fine)
+        sig = {k: v for k, v in sig.items() if k not in NOT_INPUTS.get(place, ())}
         groups = learned_groups(sig, carriers_of(place), angle_periods(ses, fit, place, sig))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
