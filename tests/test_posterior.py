@@ -477,3 +477,13 @@ def test_a_bell_ridge_on_a_trace_that_passes_c_is_not_told_to_pass_c():
     assert not any("(x past c)" in t or "never passes" in t for t in texts), texts
     bell = [t for t in texts if t.startswith(("a and c", "a and b", "b and c", "F_rt and"))]
     assert bell and all("already passes c: max x = 1.131 mm > c" in t for t in bell), texts
+
+
+def test_the_intervals_say_what_the_channels_cannot_determine():
+    """Without x_m the gap polynomial is held: a and c are in its displacement, and the
+    posterior's warnings say so as the least-squares fit's do."""
+    trace, _ = rig.simulate_rig(rig.RigParams(), sample_rate_hz=100.0, duration_s=2.5, seed=3)
+    channels = {k: v for k, v in trace.channels.items() if k != "x_m"}
+    res = sample(dataclasses.replace(trace, channels=channels), n_steps=100, max_steps=100)
+    assert any("no x_m" in w and "nominal polynomial" in w for w in res.warnings)
+    assert any("no x_m" in w for w in res.to_summary_json()["warnings"])

@@ -79,7 +79,7 @@ from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.log_posterior import SampleError, SamplerSettings, build
 from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
-from ewb_ident.inference.problem import FitError
+from ewb_ident.inference.problem import FitError, structural_notes
 from ewb_ident.mechanisms.learned import LearnedTerm
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
 from ewb_ident.model.numerics import numerics
@@ -233,6 +233,10 @@ def _sample(
         for f in fits
         for w in (f.misfits if f.converged else f.warnings)
     ]
+    # What the channels cannot determine holds for the intervals too (a, c measured in
+    # the nominal polynomial's displacement without x_m, mu held without torque_Nm).
+    for f in fits:
+        notes += [w for w in structural_notes(f.stage, traces, tuple(f.free)) if w not in notes]
     for s in ("gap", "force"):
         if s in stages:
             notes.append(
