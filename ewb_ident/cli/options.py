@@ -179,12 +179,13 @@ def assignments(text: str | None, option: str) -> dict[str, float]:
 
 def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):
     import dataclasses
-    import math
 
     from ewb_ident.data.readers import read_trace
+    from ewb_ident.data.validation import R_EFF_RANGE_M, check_traces, r_eff_ok
 
-    if r_eff is not None and not (math.isfinite(r_eff) and 0.02 <= r_eff <= 0.5):
-        fail(f"--r-eff must be a pad radius within 0.02 to 0.5 m, got {r_eff!r}")
+    if r_eff is not None and not r_eff_ok(r_eff):
+        lo, hi = R_EFF_RANGE_M
+        fail(f"--r-eff must be a pad radius from {lo} to {hi} m, got {r_eff!r}")
     out = []
     for p in paths:
         tr = read_trace(
@@ -200,7 +201,7 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
             side = dict(tr.sidecar) | {"r_eff_m": float(r_eff), "_r_eff_source": "--r-eff"}
             tr = dataclasses.replace(tr, sidecar=side)
         out.append(tr)
-    return out
+    return list(check_traces(out))
 
 
 def bad_input_errors() -> tuple[type[Exception], ...]:

@@ -18,7 +18,13 @@ import numpy as np
 
 from ewb_ident.data.trace import COLUMNS, MAX_GAP, NanPolicy, Trace, column_label, raise_trace_error
 from ewb_ident.data.units import convert_unit, load_mapping
-from ewb_ident.data.validation import NAN_HINT, first_nonfinite, parse_stages, validate
+from ewb_ident.data.validation import (
+    NAN_HINT,
+    UNITS_UNCHECKED,
+    first_nonfinite,
+    parse_stages,
+    validate,
+)
 
 #: Most samples a trace may have (10 minutes at 1 kHz), checked before parsing.
 MAX_SAMPLES = 600_000
@@ -444,7 +450,9 @@ def read_trace(
         Float64 arrays in SI units (angle in degrees); ``name`` is the file stem,
         ``path`` the table path. Bookkeeping keys of the sidecar start with ``_``:
         ``_mapped`` (``{target: {"source", "unit"}}``), ``_ignored_columns``,
-        ``_unmatched_mapping`` and ``_filled``, each only when non-empty.
+        ``_unmatched_mapping``, ``_filled`` and ``_units_unchecked`` (read with
+        ``check_units=False``: the library's functions do not check the units again),
+        each only when non-empty.
 
     Raises
     ------
@@ -525,6 +533,7 @@ def read_trace(
         ("_unmatched_mapping", unmatched),
         ("_filled", filled),
         ("_csv_dialect", raw.dialect),
+        (UNITS_UNCHECKED, not check_units),
     ):
         if value:
             sidecar[key] = value

@@ -60,6 +60,7 @@ from typing import Any
 from ewb_ident.data.metrics import channel_metrics
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.validation import check_trace
 from ewb_ident.diagnosis.artefacts import find_artefacts
 from ewb_ident.diagnosis.corrected import (
     corrected_of,
@@ -157,6 +158,7 @@ def diagnose(
     and these channels used are loaded ahead in the background
     (:func:`~ewb_ident.model.programs.prefetching`).
     """
+    trace = check_trace(trace)
     # The channels name the work too: the first program (a fit's) takes them as data.
     work = f"diagnose {sorted(trace.channels)} {bic_threshold!r} {max_mechanisms!r} {catalog!r}"
     with prefetching(work):

@@ -28,6 +28,7 @@ import numpy as np
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import Trace, TraceError
+from ewb_ident.data.validation import check_trace
 from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, EWBParams
@@ -153,6 +154,7 @@ def validate(
         mechanisms and learned terms of a ``fit --with``/``--with-diagnosis`` fit),
         simulated instead of the seed chain; ``None``: the seed chain.
     """
+    trace = check_trace(trace)
     if isinstance(params, Mapping):
         params = EWBParams(**{n: float(params[n]) for n in MODEL_PARAMS})
     for col in ("voltage_V", "theta_deg"):

@@ -1,0 +1,270 @@
+"""Issue 38, "no silent wrong answers": misuse a new user tries, as regression tests.
+
+Each class is checked where it enters (one function each), so these tests go through
+that entry from both sides where both exist: the Python API and the command line. A
+refusal is one line on stderr naming the input and what to do, exit 2, nothing written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+import ewb_ident as ei
+from ewb_ident.cli import app
+from ewb_ident.data.trace import TraceError
+from ewb_ident.data.writers import write_trace
+from ewb_ident.rig.simulate import simulate_rig
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory) -> Path:
+    """A 1 s, 200 Hz apply-hold-release of the synthetic rig, written as a user's CSV."""
+    trace, _ = simulate_rig(
+        profile="steps",
+        duration_s=1.0,
+        t_start_s=0.05,
+        t_apply_s=0.35,
+        t_hold_s=0.2,
+        t_release_s=0.3,
+        seed=3,
+    )
+    return write_trace(trace, tmp_path_factory.mktemp("rig") / "rig.csv")
+
+
+@pytest.fixture(scope="module")
+def rig_trace(rig):
+    return ei.read_trace(rig)
+
+
+def refused(result, out: Path | None = None) -> str:
+    """The one line of a refusal (exit 2, nothing written)."""
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1, result.output
+    if out is not None:
+        assert not out.exists() or not any(out.iterdir())
+    return lines[0]
+
+
+# ----------------------------------------------------------------------- 1a. units
+
+#: (column, the unit the values are logged in, the unit the mapping declares, what the
+#: refusal says). Every channel, each way a factor of its unit family can go wrong.
+WRONG_UNITS = [
+    ("x_m", "m", "mm", r"stroke .* outside the plausible 1e-05 to 0\.01 m: looks like metres"),
+    ("x_m", "mm", "um", r"stroke .* outside the plausible .*: looks like millimetres"),
+    ("x_m", "mm", "m", r"\|x\| reaches .* outside the plausible .*: looks like millimetres"),
+    ("theta_deg", "deg", "rad", r"lead of .* m/deg, outside the plausible 2\.5e-07 to 2\.5e-05"),
+    ("theta_deg", "rad", "deg", r"\|theta\| stays below .*: looks like radians"),
+    ("voltage_V", "V", "mV", r"peak \|V\| is 0\.004 V .* 0\.12 to 100 V: looks like volts"),
+    ("voltage_V", "mV", "V", r"peak \|V\| is 4000 V, outside .*: looks like millivolts"),
+    ("current_A", "A", "mA", r"peak \|i\| is .* plausible 0\.05 to 200 A: looks like amperes"),
+    ("current_A", "mA", "A", r"peak \|i\| is .*: looks like milliamperes"),
+    ("force_N", "N", "kN", r"peak \|F\| is .* plausible 0 to 50000 N: looks like newtons"),
+    ("time_s", "s", "ms", r"sample rate 200000 Hz .*: looks like seconds"),
+    ("time_s", "ms", "s", r"sample rate 0\.2 Hz .*: looks like milliseconds"),
+    ("disc_speed_rad_s", "rpm", "rad/s", r"disc speed's peak .*: looks like revolutions per"),
+]
+
+#: The size of each unit in the column's own unit (theta_deg in degrees).
+IN_COLUMN_UNIT = {
+    "m": 1.0, "mm": 1e-3, "um": 1e-6, "deg": 1.0, "rad": 180.0 / math.pi, "V": 1.0,
+    "mV": 1e-3, "A": 1.0, "mA": 1e-3, "N": 1.0, "kN": 1e3, "s": 1.0, "ms": 1e-3,
+    "rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0,
+}  # fmt: skip
+
+
+def logged(rig: Path, folder: Path, column: str, unit: str, declared: str):
+    """``rig`` with ``column`` logged in ``unit`` as 'src', and a mapping declaring it
+    ``declared``."""
+    df = pd.read_csv(rig)
+    df[column] = df[column] / IN_COLUMN_UNIT[unit]
+    path = folder / "logged.csv"
+    df.rename(columns={column: "src"}).to_csv(path, index=False)
+    side = json.loads(rig.with_suffix(".json").read_text())
+    side.pop("sample_rate_hz")  # a sidecar's rate would be refused first for time_s
+    path.with_suffix(".json").write_text(json.dumps(side))
+    mapping = folder / "map.json"
+    mapping.write_text(json.dumps({"src": {"column": column, "unit": declared}}))
+    return path, mapping
+
+
+@pytest.mark.parametrize(("column", "unit", "declared", "message"), WRONG_UNITS)
+def test_a_wrong_declared_unit_is_refused_on_every_channel(
+    rig, tmp_path, column, unit, declared, message
+):
+    path, mapping = logged(rig, tmp_path, column, unit, declared)
+    with pytest.raises(TraceError, match=message) as err:
+        ei.read_trace(path, mapping=mapping)
+    text = str(err.value)
+    assert f"column 'src' (mapped to '{column}')" in text
+    assert f"the mapping declares 'src' in '{declared}'" in text
+    if column != "theta_deg":  # the lead names the units of theta and x together
+        assert f"is it '{unit}'?" in text
+
+
+def test_a_wrong_declared_unit_is_refused_by_the_cli_and_nothing_is_written(rig, tmp_path):
+    path, mapping = logged(rig, tmp_path, "x_m", "m", "mm")
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(path), "--map", str(mapping), "--out", str(out)]))
+    assert "the piston's stroke (max - min of x) is 2.7" in line, line
+    assert "e-06 m (after conversion from 'mm'), outside the plausible 1e-05 to 0.01 m" in line
+    assert "looks like metres ('m')" in line
+    assert "--no-unit-check" in line and not out.exists()
+
+
+def test_no_unit_check_is_the_escape_hatch(rig, tmp_path):
+    path, mapping = logged(rig, tmp_path, "theta_deg", "deg", "rad")
+    trace = ei.read_trace(path, mapping=mapping, check_units=False)
+    assert trace["theta_deg"].max() > 20000.0
+
+
+def test_a_torque_in_the_wrong_scale_is_refused_by_the_friction_it_implies(rig, tmp_path):
+    df = pd.read_csv(rig)
+    df["torque_Nm"] *= 1000.0  # N*mm
+    path = tmp_path / "nmm.csv"
+    df.to_csv(path, index=False)
+    with pytest.raises(
+        TraceError,
+        match=r"column 'torque_Nm', row \d+: .* pad friction "
+        r"coefficient T/\(2 F r_eff\) of 3\d\d(\.\d+)?, outside the plausible",
+    ):
+        ei.read_trace(path)
+
+
+def test_a_force_in_kilonewtons_read_as_newtons_is_named(rig, tmp_path):
+    path, mapping = logged(rig, tmp_path, "force_N", "kN", "N")
+    with pytest.raises(
+        TraceError,
+        match=r"force never rises above 3\.\d+ N .* looks like "
+        r"kilonewtons, 'kN'.*check that unit \(is it 'kN'\?\)",
+    ):
+        ei.read_trace(path, mapping=mapping, stages=["force"])
+
+
+@pytest.mark.parametrize(
+    ("pad_radius", "supply", "rate"), [(0.1, 12.0, 100.0), (0.3, 48.0, 1000.0)]
+)
+def test_other_rigs_pass_the_unit_checks(pad_radius, supply, rate):
+    """Ranges from the physics, not from this project's rig: a small and a large pad
+    radius, 12 and 48 V supplies, 100 Hz and 1 kHz."""
+    from ewb_ident.data.validation import validate
+    from ewb_ident.rig.params import RigParams
+
+    trace, _ = simulate_rig(
+        RigParams(r_eff_m=pad_radius),
+        profile="position",
+        sample_rate_hz=rate,
+        duration_s=1.0,
+        t_start_s=0.05,
+        ramp_s=0.3,
+        hold_s=0.3,
+        v_max_V=supply,
+    )
+    validate(trace)
+
+
+def test_the_shipped_datasets_pass_the_unit_checks():
+    root = Path(__file__).parents[1] / "datasets"
+    paths = sorted(root.glob("*.csv")) + sorted(root.glob("concealed/*.csv"))
+    assert len(paths) >= 10
+    for path in paths:
+        ei.read_trace(path)
+
+
+# ----------------------------------------------------------------------- 1b. repeats
+
+
+def test_the_same_trace_twice_is_refused(rig, rig_trace, tmp_path):
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(rig), str(rig), "--out", str(out)]), out)
+    assert "trace 2 has the same samples as trace 1" in line and "give each recording once" in line
+    copy = dataclasses.replace(rig_trace, name="copy", time_s=rig_trace.time_s + 10.0)
+    with pytest.raises(TraceError, match="same samples"):
+        ei.fit([rig_trace, copy], stage="force")
+
+
+# ----------------------------------------------------------------------- 1c. the API
+
+
+def _bad_traces(trace):
+    t = trace.time_s
+    nan_force = np.where(np.arange(trace.n) == 7, np.nan, trace["force_N"])
+    return {
+        "non-uniform": (
+            dataclasses.replace(trace, time_s=t[0] + (t - t[0]) ** 1.3),
+            r"column 'time_s', row 2: interval .* sampling is not uniform",
+        ),
+        "backwards": (
+            dataclasses.replace(trace, time_s=t[::-1].copy()),
+            r"column 'time_s', row 2: time goes from .* not strictly increasing",
+        ),
+        "nan": (
+            dataclasses.replace(trace, channels={**trace.channels, "force_N": nan_force}),
+            r"column 'force_N', row 8: empty cell",
+        ),
+    }
+
+
+@pytest.mark.parametrize("case", ["non-uniform", "backwards", "nan"])
+@pytest.mark.parametrize("function", ["fit", "sample", "diagnose"])
+def test_the_api_checks_what_it_is_given_as_the_cli_does(rig_trace, case, function):
+    trace, message = _bad_traces(rig_trace)[case]
+    with pytest.raises(TraceError, match=message):
+        getattr(ei, function)(trace)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"fixed": {"a": "x"}}, TypeError, r"fixed: a='x' is not a number; give its value"),
+        ({"free": "a,b,c"}, TypeError, r"free: give a sequence .* free=\['a', 'b', 'c'\], not"),
+        ({"per_trace": "c"}, TypeError, r"per_trace: give a sequence of parameter names"),
+        ({"fixed": 3}, TypeError, r"fixed: give a dict of parameter names to values"),
+    ],
+)
+def test_the_api_names_a_bad_option(rig_trace, kwargs, error, message):
+    with pytest.raises(error, match=message):
+        ei.fit(rig_trace, stage="force", **kwargs)
+    with pytest.raises(error, match=message):
+        ei.sample(rig_trace, stage="force", **kwargs)
+
+
+@pytest.mark.parametrize("function", ["fit", "sample", "diagnose"])
+def test_a_path_instead_of_a_trace_says_read_it_first(rig, function):
+    argument = "trace" if function == "diagnose" else "traces"
+    with pytest.raises(
+        TypeError,
+        match=rf"{argument}: got the path '.*rig\.csv', not a Trace; "
+        r"read it first: ewb_ident\.read_trace",
+    ):
+        getattr(ei, function)(str(rig))
+
+
+# ----------------------------------------------------------------------- 2. blame
+
+
+def test_a_bad_start_value_blames_the_data_not_fix(rig, tmp_path):
+    """x logged in mm and let through with --no-unit-check: the bell's start width is
+    then metres; the message is about the data, never '--fix' (which was not given)."""
+    df = pd.read_csv(rig)
+    df["x_m"] *= 1e3
+    path = tmp_path / "mm.csv"
+    df.to_csv(path, index=False)
+    out = tmp_path / "out"
+    line = refused(
+        runner.invoke(app, ["fit", str(path), "--no-unit-check", "--out", str(out)]), out
+    )
+    assert "--fix" not in line
+    assert "the force stage's data (x_m and force_N) put the start value of a at" in line
+    assert "check their units" in line
