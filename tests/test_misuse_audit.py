@@ -251,6 +251,34 @@ def test_a_path_instead_of_a_trace_says_read_it_first(rig, function):
         getattr(ei, function)(str(rig))
 
 
+# ----------------------------------------------------------------------- 1d. --out
+
+
+def test_an_earlier_runs_files_are_replaced_as_a_set(tmp_path):
+    from ewb_ident.data.outputs import RUN_MANIFEST, write_run
+
+    def writer(text):
+        return lambda tmp: tmp.write_text(text)
+
+    out = tmp_path / "out"
+    write_run(out, "diagnose", [(out / "diagnosis.json", writer("{}")),
+                                (out / "finding_1_backlash.png", writer("png"))])  # fmt: skip
+    (out / "notes.txt").write_text("the user's own")
+    write_run(out, "diagnose", [(out / "diagnosis.json", writer('{"verdict": "none"}'))])
+    assert sorted(p.name for p in out.iterdir()) == [RUN_MANIFEST, "diagnosis.json", "notes.txt"]
+    assert json.loads((out / RUN_MANIFEST).read_text())["files"] == ["diagnosis.json"]
+
+
+def test_a_fit_into_an_earlier_diagnosis_folder_leaves_no_finding_behind(rig, tmp_path):
+    from ewb_ident.data.outputs import write_run
+
+    out = tmp_path / "out"
+    write_run(out, "diagnose", [(out / "finding_1_backlash.png", lambda tmp: tmp.write_text("x"))])
+    result = runner.invoke(app, ["fit", str(rig), "--stage", "force", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert not (out / "finding_1_backlash.png").exists() and (out / "fit.json").exists()
+
+
 # ----------------------------------------------------------------------- 2. blame
 
 

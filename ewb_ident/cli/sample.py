@@ -186,17 +186,18 @@ _OPTION_NAMES = {
 
 def _write(out, result, traces) -> None:
     """summary.json, posterior.nc and pairs.png, atomically."""
-    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.data.outputs import json_text, write_run
     from ewb_ident.reporting.report_figures import pair_figure
 
     text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
     idata, fig = result.to_inference_data(), pair_figure(result)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(
+    write_run(
+        out,
+        "sample",
         [
             (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
             # Uncompressed: zlib costs a noticeable share of a cached run to save 8 %.
             (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp), compress=False)),
             (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
-        ]
+        ],
     )

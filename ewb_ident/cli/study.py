@@ -24,7 +24,7 @@ def study(
     check_out(out)
     from rich.progress import Progress
 
-    from ewb_ident.data.outputs import atomic_write
+    from ewb_ident.data.outputs import write_run
     from ewb_ident.study import StudyError, load_study, run_script, run_study, summarise
 
     try:
@@ -43,11 +43,13 @@ def study(
         else:
             table = run_study(spec, scheduler=scheduler, progress=progress)
             report = summarise(spec, table)
-    atomic_write(
+    write_run(
+        out,
+        "study",
         [
             (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
             (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
-        ]
+        ],
     )
     typer.echo(report)
     typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
