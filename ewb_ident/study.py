@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import time
 import tomllib
 from collections.abc import Callable
@@ -90,6 +91,47 @@ class Study:
                 k = len(out)
                 out.append(Case(k, self.seed * 1_000_003 + k, rep, point, self.task, self.options))
         return out
+
+
+#: Profiles a study's rig may run ("through_c": position control past full clamping).
+PROFILES = ("steps", "position", "staircase", "through_c")
+
+#: Most cases a study may define (checked before any is built): 10,000 three-second
+#: fits take about a day on two cores.
+MAX_CASES = 10_000
+
+
+def _check_rig_value(path: Path, key: str, value: Any) -> None:
+    """One value of a [rig] key, checked before any case runs."""
+    from ewb_ident.rig.effects import EFFECTS
+
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+    ranges = {
+        "sample_rate_hz": (100.0, 1000.0),
+        "duration_s": (0.2, 600.0),
+        "noise_scale": (0.0, 100.0),
+        "vary": (0.0, 0.5),
+    }
+    if key == "profile":
+        if value not in PROFILES:
+            raise StudyError(
+                f"{path}: [rig] profile {value!r} is unknown; use one of {', '.join(PROFILES)}"
+            )
+    elif key == "effects":
+        names = value if isinstance(value, list) else [value]
+        bad = [e for e in names if e not in EFFECTS]
+        if bad:
+            raise StudyError(
+                f"{path}: [rig] effects: {bad[0]!r} is not a catalog id; use {sorted(EFFECTS)}"
+            )
+    elif key in ranges:
+        lo, hi = ranges[key]
+        if not number(value) or not lo <= value <= hi:
+            raise StudyError(
+                f"{path}: [rig] {key} must be a number from {lo} to {hi}, got {value!r}"
+            )
 
 
 def load_study(path: str | Path) -> Study:
@@ -157,13 +199,28 @@ def load_study(path: str | Path) -> Study:
         value = rig.get(key, default)
         # effects is a list already: a list of lists is a grid of effect sets
         if key == "effects":
+            if not isinstance(value, list):
+                raise StudyError(
+                    f"{path}: [rig] effects must be a list of catalog ids, e.g. ['backlash'],"
+                    f" got {value!r}"
+                )
             grid[key] = value if value and isinstance(value[0], list) else [value]
         else:
             grid[key] = value if isinstance(value, list) else [value]
+        if not grid[key]:
+            raise StudyError(f"{path}: [rig] {key} is an empty list; give at least one value")
+        for v in grid[key]:
+            _check_rig_value(path, key, v)
     repeats = head.get("repeats", 1)
-    if not isinstance(repeats, int) or repeats < 1:
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise StudyError(
             f"{path}: [study] repeats must be a positive whole number, got {repeats!r}"
+        )
+    n_cases = math.prod(len(v) for v in grid.values()) * repeats
+    if n_cases > MAX_CASES:
+        raise StudyError(
+            f"{path}: {n_cases:,} cases (the [rig] grid times repeats = {repeats:,}) is more"
+            f" than {MAX_CASES:,}; use fewer repeats or grid values, or split the study"
         )
     return Study(
         name=str(head.get("name", path.stem)),
@@ -344,7 +401,14 @@ def run_study(
     else:
         from distributed import Client, as_completed
 
-        with Client(scheduler) as client:
+        try:
+            client = Client(scheduler, timeout=30)
+        except (OSError, TimeoutError, ValueError) as err:
+            raise StudyError(
+                f"--scheduler {scheduler}: cannot reach the scheduler ({type(err).__name__}:"
+                f" {err}); start it, or run without --scheduler"
+            ) from None
+        with client:
             futures = client.map(run_case, cases, pure=False)
             for k, fut in enumerate(as_completed(futures)):
                 rows += fut.result()
@@ -352,6 +416,14 @@ def run_study(
                     progress(k + 1, len(cases))
     table = pd.DataFrame(rows)
     return table.sort_values(["case"] + (["parameter"] if "parameter" in table else []))
+
+
+def failed_cases(table) -> int:
+    """How many cases of a study's table failed (a non-empty ``error``)."""
+    if "error" not in table or "case" not in table:
+        return 0
+    errors = table["error"].notna() & (table["error"].astype(str) != "")
+    return int(table.loc[errors, "case"].nunique())
 
 
 def summarise(study: Study, table) -> str:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +28,9 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def rig(tmp_path_factory) -> Path:
-    """A 1 s, 200 Hz apply-hold-release of the synthetic rig, written as a user's CSV."""
-    trace, _ = simulate_rig(
+def simulated():
+    """A 1 s, 200 Hz apply-hold-release of the synthetic rig, and its truth."""
+    return simulate_rig(
         profile="steps",
         duration_s=1.0,
         t_start_s=0.05,
@@ -38,7 +39,12 @@ def rig(tmp_path_factory) -> Path:
         t_release_s=0.3,
         seed=3,
     )
-    return write_trace(trace, tmp_path_factory.mktemp("rig") / "rig.csv")
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory, simulated) -> Path:
+    """That trace written as a user's CSV with its sidecar."""
+    return write_trace(simulated[0], tmp_path_factory.mktemp("rig") / "rig.csv")
 
 
 @pytest.fixture(scope="module")
@@ -296,3 +302,151 @@ def test_a_bad_start_value_blames_the_data_not_fix(rig, tmp_path):
     assert "--fix" not in line
     assert "the force stage's data (x_m and force_N) put the start value of a at" in line
     assert "check their units" in line
+
+
+# ----------------------------------------------------------------------- 3. tracebacks
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda tmp: "", r"--out is empty \(it would write into the current folder\)"),
+        (lambda tmp: _dangling(tmp), r"a symbolic link to .*nowhere, which does not exist"),
+        (lambda tmp: str(tmp / ("y" * 300)), r"--out: the name y{40}\.\.\. is longer than"),
+        (lambda tmp: str(tmp / "/".join(["z" * 200] * 21)), r"the path is longer than 4096"),
+    ],
+)
+def test_a_bad_out_is_one_line_before_any_work(rig, tmp_path, make, message):
+    line = refused(
+        runner.invoke(app, ["fit", str(rig), "--stage", "force", "--out", make(tmp_path)])
+    )
+    assert re.search(message, line), line
+    assert not (tmp_path / "fit.json").exists() and not Path("fit.json").exists()
+
+
+def _dangling(tmp: Path) -> str:
+    link = tmp / "link"
+    link.symlink_to(tmp / "nowhere")
+    return str(link)
+
+
+@pytest.fixture(scope="module")
+def fit_json(rig, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("fit") / "out"
+    assert runner.invoke(app, ["fit", str(rig), "--out", str(out)]).exit_code == 0
+    return out / "fit.json"
+
+
+@pytest.mark.parametrize(("name", "value"), [("L", 0), ("R", -1), ("mu", 1.5)])
+def test_a_parameters_file_outside_the_bounds_is_refused_by_every_command(
+    rig, fit_json, tmp_path, name, value
+):
+    doc = json.loads(fit_json.read_text())
+    doc["params"][name] = value
+    bad = tmp_path / "fit.json"
+    bad.write_text(json.dumps(doc))
+    expected = f"{bad}: params.{name} is {value}, outside its bounds"
+    out = tmp_path / "out"
+    line = refused(
+        runner.invoke(app, ["validate", str(rig), "--params", str(bad), "--out", str(out)]), out
+    )
+    assert expected in line
+    sim = tmp_path / "sim.csv"
+    line = refused(runner.invoke(app, ["simulate", str(sim), "--params", str(bad)]))
+    assert expected in line and not sim.exists()
+    from ewb_ident.inference.validate import ValidateError
+
+    with pytest.raises(ValidateError, match=f"params.{name} is {value}"):
+        ei.validate(ei.read_trace(rig), doc["params"])
+
+
+def test_compare_with_a_channel_missing_on_one_side_names_it(rig, tmp_path):
+    df = pd.read_csv(rig).drop(columns=["torque_Nm"])
+    new = tmp_path / "new.csv"
+    df.to_csv(new, index=False)
+    out = tmp_path / "out"
+    argv = ["compare", "--old", str(rig), "--new", str(new), "--out", str(out)]
+    line = refused(runner.invoke(app, argv), out)
+    assert "NEW records no torque_Nm where OLD does, so mu cannot be compared" in line
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--walkers", "2000000"], r"2000000 walkers in 2 ensembles .* need about [\d.e+]+ GB"),
+        (["--ensembles", "5000", "--draws", "5000"], r"in 5000 ensembles .* use fewer --walkers"),
+    ],
+)
+def test_sample_settings_that_cannot_fit_in_memory_are_refused(rig, tmp_path, options, message):
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["sample", str(rig), *options, "--out", str(out)]), out)
+    assert re.search(message, line), line
+
+
+def test_simulate_refuses_a_negative_seed(tmp_path):
+    out = tmp_path / "t.csv"
+    argv = ["simulate", str(out), "--seed", "-1", "--vary", "0.1"]
+    line = refused(runner.invoke(app, argv))
+    assert "--seed must be a non-negative whole number, got -1" in line and not out.exists()
+
+
+STUDY = '[study]\nname = "s"\ntask = "fit"\n'
+
+
+@pytest.mark.parametrize(
+    ("text", "options", "message"),
+    [
+        (STUDY + "[rig]\nprofile = []\n", [], r"\[rig\] profile is an empty list"),
+        (STUDY + "repeats = 1000000000\n", [], r"1,000,000,000 cases .* more than 10,000"),
+        (STUDY + "[rig]\nprofile = 'zigzag'\n", [], r"\[rig\] profile 'zigzag' is unknown"),
+        (STUDY + "[rig]\nsample_rate_hz = 'fast'\n", [], r"sample_rate_hz must be a number"),
+        (STUDY + "[rig]\neffects = 'backlash'\n", [], r"effects must be a list of catalog"),
+        (STUDY, ["--scheduler", "tcp://host"], r"--scheduler 'tcp://host' is not a scheduler"),
+    ],
+)
+def test_a_study_that_cannot_run_is_refused_whole_before_any_case(tmp_path, text, options, message):
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["study", str(path), "--out", str(out), *options]), out)
+    assert re.search(message, line), line
+
+
+def test_a_study_whose_cases_fail_exits_3(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text(STUDY + "repeats = 2\n[rig]\nduration_s = 0.5\n[task]\nstage = 'nowhere'\n")
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["study", str(path), "--out", str(out)])
+    assert result.exit_code == 3, result.output
+    assert "2 of 2 cases failed" in result.output
+    assert (out / "results.csv").exists()
+
+
+# ----------------------------------------------------------------------- 4. exit codes
+
+
+def test_a_sidecar_key_given_twice_is_refused(rig, tmp_path):
+    path = tmp_path / "dup.csv"
+    path.write_text(rig.read_text())
+    path.with_suffix(".json").write_text('{"r_eff_m": 0.15, "r_eff_m": 0.5}')
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(path), "--out", str(out)]), out)
+    assert "dup.json: key 'r_eff_m': the key is given twice" in line
+
+
+@pytest.mark.parametrize("radius", [0.02, 0.5])
+def test_sidecar_and_r_eff_share_one_range(rig, tmp_path, radius):
+    path = tmp_path / "r.csv"
+    path.write_text(rig.read_text())
+    path.with_suffix(".json").write_text(json.dumps({"r_eff_m": radius}))
+    # (A 0.02 m radius is refused by the friction its torque would imply: not a range.)
+    assert ei.read_trace(path, check_units=False).r_eff_m == radius
+    for too_far in (0.0199, 0.501):
+        path.with_suffix(".json").write_text(json.dumps({"r_eff_m": too_far}))
+        with pytest.raises(TraceError, match=r"is not a number from 0\.02 to 0\.5 m"):
+            ei.read_trace(path)
+        out = tmp_path / "out"
+        argv = ["fit", str(rig), "--r-eff", str(too_far), "--out", str(out)]
+        assert "--r-eff must be a pad radius from 0.02 to 0.5 m" in refused(
+            runner.invoke(app, argv), out
+        )

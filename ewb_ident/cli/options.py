@@ -26,7 +26,21 @@ EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTWORTHY = 3
 
 Traces = Annotated[list[Path], typer.Argument(help="Trace files (.csv, .parquet, .mat).")]
-OutDir = Annotated[Path, typer.Option("--out", "-o", help="Output folder (created if absent).")]
+
+
+class _EmptyOut(type(Path())):
+    """``--out ""`` as given (a plain Path of "" is the current folder)."""
+
+
+def _out_path(text: str) -> Path:
+    """``--out`` as given; an empty one is marked for :func:`check_out` to refuse."""
+    return _EmptyOut() if not text.strip() else Path(text)
+
+
+OutDir = Annotated[
+    Path,
+    typer.Option("--out", "-o", help="Output folder (created if absent).", parser=_out_path),
+]
 Mapping = Annotated[
     Path | None,
     typer.Option("--map", help="Column mapping (JSON/TOML): source name -> column and unit."),
@@ -69,6 +83,20 @@ def check_out(out: Path, *, folder: bool = True) -> None:
     """Refuse an output location that cannot be written, before any work starts."""
     import os
 
+    if isinstance(out, _EmptyOut):
+        fail("--out is empty (it would write into the current folder); name the output folder")
+    name = f"--out {out}" if folder else str(out)
+    limit = os.pathconf(_existing(out), "PC_NAME_MAX")
+    long_part = next((p for p in out.parts if len(os.fsencode(p)) > limit), None)
+    if long_part is not None:
+        fail(f"--out: the name {long_part[:40]}... is longer than {limit} bytes; use a shorter one")
+    if len(os.fsencode(os.path.abspath(out))) >= 4096:
+        fail(f"--out {str(out)[:40]}...: the path is longer than 4096 bytes; use a shorter one")
+    if out.is_symlink() and not out.exists():
+        fail(
+            f"{name}: a symbolic link to {os.readlink(out)}, which does not exist; remove the"
+            " link or name another location"
+        )
     if folder and out.exists() and not out.is_dir():
         fail(f"--out {out}: exists and is not a folder; name a folder (it is created)")
     if not folder and out.is_dir():
@@ -88,6 +116,16 @@ def check_out(out: Path, *, folder: bool = True) -> None:
         os.unlink(name)
     except OSError as err:
         fail(f"{out}: cannot write there ({probe}: {err.strerror}); choose another")
+
+
+def _existing(path: Path) -> Path:
+    """The nearest folder of ``path`` that exists (for file-system limits)."""
+    import os
+
+    probe = os.path.abspath(path)
+    while not os.path.isdir(probe) and probe != os.path.dirname(probe):
+        probe = os.path.dirname(probe)  # (isdir is False for a name too long, not an error)
+    return Path(probe)
 
 
 class Status:

@@ -140,6 +140,8 @@ def sample(
         trs = read_traces(
             traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check, r_eff
         )
+        # The memory the settings need, from the traces' length, in the options' spelling.
+        SamplerSettings(**settings).check(names=_OPTION_NAMES, n_samples=sum(t.n for t in trs))
         if bar is not None:
             bar.start()
         common = dict(priors=priors, progress=progress, **settings)

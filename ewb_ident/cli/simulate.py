@@ -49,6 +49,8 @@ def simulate(
     check_out(out, folder=False)
     import math
 
+    if seed < 0:
+        fail(f"--seed must be a non-negative whole number, got {seed}")
     if not (math.isfinite(duration) and 0 < duration <= 600):
         fail(f"--duration must be within (0, 600] s, got {duration!r}")
     if not (math.isfinite(vary) and 0 <= vary <= 0.5):

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ewb_ident.cli.options import OutDir, app, check_out, fail
+from ewb_ident.cli.options import EXIT_UNTRUSTWORTHY, OutDir, app, check_out, fail
 
 
 @app.command()
@@ -20,12 +20,24 @@ def study(
     ] = None,
 ) -> None:
     """Run a batch study: writes OUT/results.csv (one row per case and parameter) and
-    OUT/report.md."""
+    OUT/report.md. Exits 3 when any case failed (its error is in results.csv)."""
     check_out(out)
+    import re
+
+    address = r"(tcp|tls|ws|wss)://[^\s:/]+:\d{1,5}|inproc://\S+"
+    if scheduler is not None and not re.fullmatch(address, scheduler):
+        fail(f"--scheduler {scheduler!r} is not a scheduler address; give one like tcp://host:8786")
     from rich.progress import Progress
 
     from ewb_ident.data.outputs import write_run
-    from ewb_ident.study import StudyError, load_study, run_script, run_study, summarise
+    from ewb_ident.study import (
+        StudyError,
+        failed_cases,
+        load_study,
+        run_script,
+        run_study,
+        summarise,
+    )
 
     try:
         spec = load_study(definition)
@@ -41,7 +53,10 @@ def study(
         if spec.script is not None:
             table, report = run_script(spec, out, progress=progress)
         else:
-            table = run_study(spec, scheduler=scheduler, progress=progress)
+            try:
+                table = run_study(spec, scheduler=scheduler, progress=progress)
+            except StudyError as err:
+                fail(str(err))
             report = summarise(spec, table)
     write_run(
         out,
@@ -53,3 +68,11 @@ def study(
     )
     typer.echo(report)
     typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
+    failed = failed_cases(table)
+    if failed:
+        total = len(spec.cases()) if spec.script is None else failed
+        typer.echo(
+            f"{failed} of {total} cases failed (their errors are in {out / 'results.csv'})",
+            err=True,
+        )
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)

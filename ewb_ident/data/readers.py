@@ -301,12 +301,32 @@ def _to_float(raw: Any, label: str, column: str) -> np.ndarray:
     return out
 
 
+class _DuplicateKey(ValueError):
+    """A JSON object with a key given twice (the key is the message)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def _read_sidecar(path: Path) -> dict[str, Any]:
     side = path.with_suffix(".json")
     if not side.is_file():
         return {}
     try:
-        data = json.loads(side.read_text(encoding="utf-8"))
+        data = json.loads(side.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
+    except _DuplicateKey as err:
+        raise_trace_error(
+            str(side),
+            "the key is given twice (JSON would keep the last one silently)",
+            "give each key once",
+            key=str(err),
+        )
     except RecursionError:
         raise_trace_error(
             str(side),

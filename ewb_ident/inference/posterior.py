@@ -194,7 +194,7 @@ def sample(
     settings = SamplerSettings(
         noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
     )
-    settings.check()
+    settings.check(n_samples=sum(t.n for t in traces))
     stages = _stage_list(stage, traces)
     prior_table = load_priors(priors)
     return _sample(
@@ -310,7 +310,7 @@ def sample_corrected(
     settings = SamplerSettings(
         noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
     )
-    settings.check()
+    settings.check(n_samples=trace.n)
     prior_table = load_priors(priors)
     t_start = time.perf_counter()
     start = _corrected_start(trace, corrected)
