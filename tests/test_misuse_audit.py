@@ -450,3 +450,59 @@ def test_sidecar_and_r_eff_share_one_range(rig, tmp_path, radius):
         assert "--r-eff must be a pad radius from 0.02 to 0.5 m" in refused(
             runner.invoke(app, argv), out
         )
+
+
+# ----------------------------------------------------------------------- 5. mutations
+
+
+def test_percent_error_is_the_relative_l2_norm_of_the_residual():
+    """By hand: measured (3, 4), simulated (4, 4): |e|_2 / |y|_2 = 1 / 5 = 20 % (the
+    relative L1 norm would be 1 / 7 = 14.3 %); RMSE sqrt(1/2); NRMSE over the 1-wide
+    span 70.7 %."""
+    m = ei.channel_metrics([4.0, 4.0], [3.0, 4.0])
+    assert m["percent_error"] == pytest.approx(20.0, rel=1e-12)
+    assert m["rmse"] == pytest.approx(math.sqrt(0.5), rel=1e-12)
+    assert m["nrmse_pct"] == pytest.approx(100.0 * math.sqrt(0.5), rel=1e-12)
+
+
+def test_validate_is_at_the_noise_floor_within_one_and_a_half_sensor_noises(simulated):
+    """The truth on its own trace misses by its sensor noise alone (ratio below 1); an
+    offset of 1.2 sensor noises on the force keeps it within 1.5x, one of 2 noises
+    (ratio ~2.2) does not, and the verdict says which channel."""
+    from ewb_ident.data.metrics import sensor_noise
+    from ewb_ident.model.params import MODEL_PARAMS
+
+    trace, truth = simulated
+    params = {k: truth["params"][k] for k in MODEL_PARAMS}
+    sd = sensor_noise(trace["force_N"])
+
+    def offset(k):
+        force = trace["force_N"] + k * sd
+        return ei.validate(
+            dataclasses.replace(trace, channels={**trace.channels, "force_N": force}), params
+        )
+
+    near, far = offset(1.2), offset(2.0)
+    assert near.at_noise_floor and near.verdict == "at_noise_floor"
+    assert 1.2 < near.metrics["force_N"]["noise_ratio"] < 1.5
+    assert not far.at_noise_floor and far.verdict == "passes_seed_acceptance"
+    assert 1.5 < far.metrics["force_N"]["noise_ratio"] < 3.0
+    assert far.words.startswith("force_N misses by 2.")
+
+
+def test_a_flat_bell_is_a_poor_fit_even_within_the_seeds_acceptance():
+    """Force alternating 2850/3150 N whatever x: the best bell is flat (b -> 0) at
+    F_rt/2 = 3000 N, percent error 5 % (inside the seed's 10 %): still poor_fit."""
+    from ewb_ident.data.readers import from_arrays
+
+    n = 400
+    rng = np.random.default_rng(0)
+    force = 3000.0 + np.where(rng.random(n) < 0.5, -150.0, 150.0)
+    trace = from_arrays(
+        "flat", np.arange(n) / 200.0, x_m=np.linspace(-8e-4, 1.6e-3, n), force_N=force
+    )
+    result = ei.fit(trace, stage="force")
+    assert result.values["b"] < 0.5
+    assert result.metrics["force_N"]["percent_error"] < 10.0
+    assert result.status == "poor_fit"
+    assert any(w.startswith("the fitted bell is flat (b = ") for w in result.warnings)
