@@ -121,7 +121,7 @@ def _check_rig_value(path: Path, key: str, value: Any) -> None:
             )
     elif key == "effects":
         names = value if isinstance(value, list) else [value]
-        bad = [e for e in names if e not in EFFECTS]
+        bad = [e for e in names if not isinstance(e, str) or e not in EFFECTS]
         if bad:
             raise StudyError(
                 f"{path}: [rig] effects: {bad[0]!r} is not a catalog id; use {sorted(EFFECTS)}"
@@ -175,6 +175,13 @@ def load_study(path: str | Path) -> Study:
         script = (path.parent / name).resolve()
         if not script.is_file():
             raise StudyError(f"{path}: [study] script {name!r} not found beside it")
+        # Resolved, symbolic links included: the file that runs must itself be a .py
+        # file in the study file's own folder, not a link to code elsewhere.
+        if script.parent != path.parent.resolve() or script.suffix != ".py":
+            raise StudyError(
+                f"{path}: [study] script {name!r} is a link to {script}, outside the study"
+                " file's own folder or not a .py file; copy the script beside the study file"
+            )
         return Study(
             name=str(head.get("name", path.stem)),
             task="script",
@@ -367,8 +374,35 @@ def run_script(study: Study, out_dir: Path, progress=None):
 
     spec = importlib.util.spec_from_file_location(f"_study_{study.name}", study.script)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.run(Path(out_dir), progress=progress, **study.options)
+    try:
+        spec.loader.exec_module(module)
+        out = module.run(Path(out_dir), progress=progress, **study.options)
+    except Exception as err:  # the script's own error, reported as the script's
+        raise ScriptError(_where(err, study.script) + f"{type(err).__name__}: {err}") from err
+    if not (
+        isinstance(out, tuple)
+        and len(out) == 2
+        and hasattr(out[0], "to_csv")
+        and isinstance(out[1], str)
+    ):
+        raise ScriptError(
+            f"{study.script}: run() returned {type(out).__name__}, not (table, Markdown):"
+            " return a pandas DataFrame and the report's text"
+        )
+    return out
+
+
+class ScriptError(RuntimeError):
+    """A study script that raised or returned the wrong types: the script's problem,
+    one line naming its file and line (the CLI exits 3)."""
+
+
+def _where(err: BaseException, script: Path) -> str:
+    """``file:line: `` of the innermost frame of ``err`` in ``script``."""
+    import traceback
+
+    frames = [f for f in traceback.extract_tb(err.__traceback__) if Path(f.filename) == script]
+    return f"{script}:{frames[-1].lineno}: " if frames else f"{script}: "
 
 
 def run_study(

@@ -506,3 +506,87 @@ def test_a_flat_bell_is_a_poor_fit_even_within_the_seeds_acceptance():
     assert result.metrics["force_N"]["percent_error"] < 10.0
     assert result.status == "poor_fit"
     assert any(w.startswith("the fitted bell is flat (b = ") for w in result.warnings)
+
+
+# ----------------------------------------------------------------------- also seen
+
+
+def test_an_empty_catalog_is_refused_not_run_whole(rig, rig_trace, tmp_path):
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["diagnose", str(rig), "--catalog", "", "--out", str(out)]))
+    assert "catalog (--catalog) names no id" in line and not out.exists()
+    with pytest.raises(TypeError, match=r"catalog: give a sequence of catalog ids"):
+        ei.diagnose(rig_trace, catalog="backlash")
+
+
+@pytest.mark.parametrize("suffix", [".parquet", ".mat"])
+def test_parquet_and_mat_obey_the_csv_length_limit_before_loading(tmp_path, suffix):
+    from ewb_ident.data.readers import MAX_SAMPLES
+
+    n = MAX_SAMPLES + 1
+    columns = {"time_s": np.arange(n) / 1000.0, "x_m": np.zeros(n)}
+    path = tmp_path / f"long{suffix}"
+    if suffix == ".parquet":
+        pd.DataFrame(columns).to_parquet(path)
+    else:
+        import scipy.io
+
+        scipy.io.savemat(path, columns)
+    with pytest.raises(TraceError, match=r"too long: about 600,001 rows; this tool reads at most"):
+        ei.read_trace(path)
+
+
+def _study_script(tmp_path: Path, body: str) -> Path:
+    (tmp_path / "s.py").write_text(body)
+    path = tmp_path / "s.toml"
+    path.write_text('[study]\nname = "s"\nscript = "s.py"\n')
+    return path
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (
+            "def run(out, progress=None):\n    raise KeyError('lost')\n",
+            r"s\.py:2: KeyError: 'lost'",
+        ),
+        ("def run(out, progress=None):\n    return 3\n", r"run\(\) returned int, not \(table"),
+    ],
+)
+def test_a_study_scripts_own_error_is_one_line_and_exit_3(tmp_path, body, message):
+    path = _study_script(tmp_path, body)
+    result = runner.invoke(app, ["study", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 3, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and re.search(message, lines[0]), result.output
+
+
+def test_a_study_script_linked_from_outside_its_folder_does_not_run(tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "evil.py").write_text("raise SystemExit('ran')\n")
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "s.py").symlink_to(elsewhere / "evil.py")
+    (study / "s.toml").write_text('[study]\nname = "s"\nscript = "s.py"\n')
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["study", str(study / "s.toml"), "--out", str(out)]), out)
+    assert "is a link to" in line and "outside the study file's own folder" in line
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(rig, tmp_path, monkeypatch):
+    import errno
+
+    import ewb_ident.data.outputs as outputs
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(outputs.os, "fsync", full)
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(rig), "--stage", "force", "--out", str(out)]))
+    assert "cannot write the results (No space left on device)" in line
+    assert not out.exists()
+    sim = tmp_path / "sim" / "t.csv"
+    line = refused(runner.invoke(app, ["simulate", str(sim)]))
+    assert "No space left on device" in line and not sim.parent.exists()

@@ -19,6 +19,7 @@ from ewb_ident.cli.options import (
     check_out,
     fail,
     read_traces,
+    writing,
 )
 
 
@@ -46,7 +47,8 @@ def compare(
         result = run_compare(trs_old, trs_new, stage=stage)
     except bad_input_errors() as err:
         fail(str(err))
-    write_run(out, "compare", [(out / "compare.json", json_writer(result.to_json()))])
+    with writing(out):
+        write_run(out, "compare", [(out / "compare.json", json_writer(result.to_json()))])
     typer.echo(result.summary())
     typer.echo(f"wrote {out / 'compare.json'}")
     if not (result.old.converged and result.new.converged):

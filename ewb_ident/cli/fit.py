@@ -26,6 +26,7 @@ from ewb_ident.cli.options import (
     mechanism_option,
     name_list,
     read_traces,
+    writing,
 )
 
 
@@ -83,7 +84,8 @@ def fit(
     except bad_input_errors() as err:
         fail(str(err))
     document = result.to_json() | {"traces": [str(p) for p in traces]}
-    write_run(out, "fit", [(out / "fit.json", json_writer(document))])
+    with writing(out):
+        write_run(out, "fit", [(out / "fit.json", json_writer(document))])
     typer.echo(fit_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
     if result.status != "ok":
@@ -104,7 +106,8 @@ def _fit_corrected(
     except (*bad_input_errors(), DiagnoseError) as err:
         fail(str(err))
     document = result.to_json() | {"traces": [str(trace)]}
-    write_run(out, "fit", [(out / "fit.json", json_writer(document))])
+    with writing(out):
+        write_run(out, "fit", [(out / "fit.json", json_writer(document))])
     typer.echo(corrected_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
     if not result.converged:

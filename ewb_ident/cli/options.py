@@ -3,6 +3,7 @@ the checks every command makes before it starts work."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -126,6 +127,30 @@ def _existing(path: Path) -> Path:
     while not os.path.isdir(probe) and probe != os.path.dirname(probe):
         probe = os.path.dirname(probe)  # (isdir is False for a name too long, not an error)
     return Path(probe)
+
+
+@contextlib.contextmanager
+def writing(out: Path, *, folder: bool = True):
+    """The results' writing: a file system that refuses it (a full disk, a quota, a
+    folder made read-only meanwhile) is one line and exit 2, and leaves nothing: the
+    atomic writes remove their temporary files, and a folder this run made is removed
+    again if it stayed empty."""
+    from ewb_ident.data.trace import TraceError
+
+    where = out if folder else out.parent
+    made = not where.exists()
+    try:
+        yield
+    except (OSError, TraceError) as err:  # (write_trace says which file, as TraceError)
+        if made:
+            with contextlib.suppress(OSError):
+                where.rmdir()  # only if empty
+        if isinstance(err, TraceError):
+            fail(str(err))
+        fail(
+            f"{out}: cannot write the results ({err.strerror or err}); free space or choose"
+            " another location"
+        )
 
 
 class Status:

@@ -27,6 +27,7 @@ from ewb_ident.cli.options import (
     name_list,
     progress_bar,
     read_traces,
+    writing,
 )
 
 
@@ -193,13 +194,14 @@ def _write(out, result, traces) -> None:
 
     text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
     idata, fig = result.to_inference_data(), pair_figure(result)
-    write_run(
-        out,
-        "sample",
-        [
-            (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
-            # Uncompressed: zlib costs a noticeable share of a cached run to save 8 %.
-            (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp), compress=False)),
-            (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
-        ],
-    )
+    with writing(out):
+        write_run(
+            out,
+            "sample",
+            [
+                (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+                # Uncompressed: zlib costs a noticeable share of a cached run to save 8 %.
+                (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp), compress=False)),
+                (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+            ],
+        )

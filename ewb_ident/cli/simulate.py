@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from ewb_ident.cli.options import app, check_out, fail
+from ewb_ident.cli.options import app, check_out, fail, writing
 
 
 @app.command()
@@ -41,7 +41,7 @@ def simulate(
     import numpy as np
 
     from ewb_ident import rig
-    from ewb_ident.data.outputs import write_json
+    from ewb_ident.data.outputs import json_writer
     from ewb_ident.data.writers import write_trace
 
     if out.suffix.lower() not in (".csv", ".parquet"):
@@ -88,8 +88,9 @@ def simulate(
         )
     except rig.RigError as err:
         fail(str(err))
-    out.parent.mkdir(parents=True, exist_ok=True)
     truth_path = out.with_suffix(".truth.json")
-    write_trace(trace, out)
-    write_json(truth_path, truth)
+    with writing(out, folder=False):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        # The truth in the same set as the table and its sidecar: all three or none.
+        write_trace(trace, out, extra=[(truth_path, json_writer(truth))])
     typer.echo(f"wrote {out} ({trace.n} samples at {trace.sample_rate_hz:g} Hz) and {truth_path}")

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ewb_ident.cli.options import EXIT_UNTRUSTWORTHY, OutDir, app, check_out, fail
+from ewb_ident.cli.options import EXIT_UNTRUSTWORTHY, OutDir, app, check_out, fail, writing
 
 
 @app.command()
@@ -31,6 +31,7 @@ def study(
 
     from ewb_ident.data.outputs import write_run
     from ewb_ident.study import (
+        ScriptError,
         StudyError,
         failed_cases,
         load_study,
@@ -51,21 +52,26 @@ def study(
             bar.update(job, completed=done, total=total)
 
         if spec.script is not None:
-            table, report = run_script(spec, out, progress=progress)
+            try:
+                table, report = run_script(spec, out, progress=progress)
+            except ScriptError as err:
+                typer.echo(f"error: {str(err).splitlines()[0] if str(err) else err}", err=True)
+                raise typer.Exit(EXIT_UNTRUSTWORTHY) from None
         else:
             try:
                 table = run_study(spec, scheduler=scheduler, progress=progress)
             except StudyError as err:
                 fail(str(err))
             report = summarise(spec, table)
-    write_run(
-        out,
-        "study",
-        [
-            (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
-            (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
-        ],
-    )
+    with writing(out):
+        write_run(
+            out,
+            "study",
+            [
+                (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
+                (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
+            ],
+        )
     typer.echo(report)
     typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     failed = failed_cases(table)

@@ -19,6 +19,7 @@ from ewb_ident.cli.options import (
     check_out,
     fail,
     read_traces,
+    writing,
 )
 
 
@@ -53,14 +54,15 @@ def validate(
         fail(str(err))
     text = json_text(result.to_json() | {"trace_file": str(trace), "params_file": str(params)})
     fig = validation_figure(tr, result)
-    write_run(
-        out,
-        "validate",
-        [
-            (out / "validate.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
-            (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
-        ],
-    )
+    with writing(out):
+        write_run(
+            out,
+            "validate",
+            [
+                (out / "validate.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+                (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+            ],
+        )
     typer.echo(validation_summary(result, str(params)))
     typer.echo(f"wrote {out / 'validate.json'} and {out / 'validate.png'}")
     if not result.passes_seed:

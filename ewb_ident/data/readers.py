@@ -123,15 +123,22 @@ def _count_lines(path: Path) -> int:
     return n
 
 
-def _read_csv(path: Path, label: str) -> _Raw:
-    lines = _count_lines(path)
-    if lines > MAX_SAMPLES + 2:
+def _check_length(rows: int, label: str) -> None:
+    """Refuse a table longer than :data:`MAX_SAMPLES`, from its size before it is read
+    (CSV lines, Parquet footer, MATLAB headers): one limit for every format."""
+    if rows > MAX_SAMPLES:
         raise_trace_error(
             label,
-            f"too long: about {lines - 1:,} rows; this tool reads at most {MAX_SAMPLES:,} "
+            f"too long: about {rows:,} rows; this tool reads at most {MAX_SAMPLES:,} "
             "samples (10 min at 1 kHz)",
             "split the recording into brake applications and fit them together",
         )
+
+
+def _read_csv(path: Path, label: str) -> _Raw:
+    lines = _count_lines(path)
+    if lines > MAX_SAMPLES + 2:
+        _check_length(lines - 1, label)
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
             text = handle.read()
@@ -183,6 +190,13 @@ def _read_parquet(path: Path, label: str) -> _Raw:
     import pyarrow.parquet as pq
 
     try:
+        rows = pq.ParquetFile(path).metadata.num_rows  # from the footer, nothing loaded
+    except Exception as err:  # pyarrow raises several types for damaged files
+        raise_trace_error(
+            label, f"not a readable Parquet file ({type(err).__name__}: {err})", "re-export"
+        )
+    _check_length(rows, label)
+    try:
         table = pq.read_table(path)
     except Exception as err:  # pyarrow raises several types for damaged files
         raise_trace_error(
@@ -201,6 +215,11 @@ def _read_parquet(path: Path, label: str) -> _Raw:
 def _read_mat(path: Path, label: str) -> _Raw:
     import scipy.io
 
+    try:  # the variables' shapes from the file's headers, nothing loaded
+        shapes = [shape for _, shape, _ in scipy.io.whosmat(path)]
+    except Exception:  # v7.3 and damaged files: loadmat below says which
+        shapes = []
+    _check_length(max((math.prod(shape) for shape in shapes), default=0), label)
     try:
         content = scipy.io.loadmat(path, simplify_cells=True)
     except NotImplementedError:

@@ -255,8 +255,19 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
 def _catalog_pool(catalog: Sequence[str] | None) -> list[AbstractMechanism]:
     """The catalog's variants to try (all, or those of the ids named)."""
     pool = variants()
+    if isinstance(catalog, str):
+        raise TypeError(
+            f"catalog: give a sequence of catalog ids, e.g. {catalog.split(',')!r}, not the"
+            f" string {catalog!r}"
+        )
     if catalog is not None:
+        catalog = list(catalog)
         known = {m.id for m in pool}
+        if not catalog:
+            raise DiagnoseError(
+                "catalog (--catalog) names no id; name catalog ids, e.g. backlash,stiction,"
+                " or leave it out for the whole catalog"
+            )
         bad = sorted(set(catalog) - known)
         if bad:
             raise DiagnoseError(f"unknown catalog id(s) {bad}; the catalog is {sorted(known)}")
