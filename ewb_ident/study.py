@@ -134,6 +134,30 @@ def _check_rig_value(path: Path, key: str, value: Any) -> None:
             )
 
 
+def _check_task_options(path: Path, task: str, options: dict[str, Any]) -> None:
+    """The [task] table's keys: the keyword arguments its task passes on (``fit``'s,
+    or ``compare``'s with ``shift`` and ``scale``), checked before any case runs."""
+    import inspect
+
+    if task == "fit":
+        from ewb_ident.inference.least_squares import fit
+
+        allowed = set(inspect.signature(fit).parameters) - {"traces"}
+    else:
+        from ewb_ident.inference.compare import compare
+
+        allowed = (set(inspect.signature(compare).parameters) - {"old", "new"}) | {
+            "shift",
+            "scale",
+        }
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise StudyError(
+            f"{path}: [task] option {unknown[0]!r} is unknown for task {task!r}; allowed:"
+            f" {sorted(allowed)}"
+        )
+
+
 def load_study(path: str | Path) -> Study:
     """Read and check a study definition (TOML).
 
@@ -223,6 +247,7 @@ def load_study(path: str | Path) -> Study:
         raise StudyError(
             f"{path}: [study] repeats must be a positive whole number, got {repeats!r}"
         )
+    _check_task_options(path, task, doc.get("task", {}))
     n_cases = math.prod(len(v) for v in grid.values()) * repeats
     if n_cases > MAX_CASES:
         raise StudyError(

@@ -402,6 +402,7 @@ STUDY = '[study]\nname = "s"\ntask = "fit"\n'
         (STUDY + "[rig]\nsample_rate_hz = 'fast'\n", [], r"sample_rate_hz must be a number"),
         (STUDY + "[rig]\neffects = 'backlash'\n", [], r"effects must be a list of catalog"),
         (STUDY, ["--scheduler", "tcp://host"], r"--scheduler 'tcp://host' is not a scheduler"),
+        (STUDY + "[task]\nspeed = 'fast'\n", [], r"\[task\] option 'speed' is unknown for task"),
     ],
 )
 def test_a_study_that_cannot_run_is_refused_whole_before_any_case(tmp_path, text, options, message):
@@ -559,6 +560,15 @@ def test_a_study_scripts_own_error_is_one_line_and_exit_3(tmp_path, body, messag
     assert result.exit_code == 3, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and re.search(message, lines[0]), result.output
+
+
+def test_a_study_script_linked_to_a_file_that_is_not_python_does_not_run(tmp_path):
+    (tmp_path / "notes.txt").write_text("raise SystemExit('ran')\n")
+    (tmp_path / "s.py").symlink_to(tmp_path / "notes.txt")
+    (tmp_path / "s.toml").write_text('[study]\nname = "s"\nscript = "s.py"\n')
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["study", str(tmp_path / "s.toml"), "--out", str(out)]), out)
+    assert "or not a .py file" in line
 
 
 def test_a_study_script_linked_from_outside_its_folder_does_not_run(tmp_path):
