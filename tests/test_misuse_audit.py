@@ -600,3 +600,46 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(rig, tmp_path, monkeypatch):
     sim = tmp_path / "sim" / "t.csv"
     line = refused(runner.invoke(app, ["simulate", str(sim)]))
     assert "No space left on device" in line and not sim.parent.exists()
+
+
+# ----------------------------------------------------------------------- the corpus
+
+
+def _corpus():
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
+    import misuse_corpus
+
+    return misuse_corpus
+
+
+def _run_corpus_case(tmp_path: Path, k: int) -> None:
+    _, argv, expected = _corpus().cases(tmp_path)[k]
+    before = set(tmp_path.rglob("*"))
+    result = runner.invoke(app, argv)
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
+    assert result.exit_code == expected, result.output
+    if expected == 2:
+        assert not [p for p in set(tmp_path.rglob("*")) - before if p.is_file()]
+
+
+@pytest.fixture(scope="module")
+def corpus_names(tmp_path_factory) -> list[str]:
+    return [c[0] for c in _corpus().cases(tmp_path_factory.mktemp("names"))]
+
+
+def test_the_corpus_cases_of_issue_38_behave(tmp_path_factory, corpus_names):
+    """benchmarks/misuse_corpus.py's cases from issue 38 (all refused at once, or a
+    study script's own error): the expected exit code, no traceback, nothing written
+    when refused."""
+    first = corpus_names.index("fit: x in m, mapping declares mm")
+    for k in range(first, len(corpus_names)):
+        _run_corpus_case(tmp_path_factory.mktemp("case"), k)
+
+
+@pytest.mark.slow
+def test_the_whole_misuse_corpus_behaves(tmp_path_factory, corpus_names):
+    """Every case of the corpus, old and new (the old ones fit whole traces)."""
+    for k in range(len(corpus_names)):
+        _run_corpus_case(tmp_path_factory.mktemp("case"), k)
