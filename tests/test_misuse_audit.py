@@ -10,17 +10,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 import ewb_ident as ei
 from ewb_ident.cli import app
-from ewb_ident.data.trace import TraceError
+from ewb_ident.data.trace import COLUMNS, TraceError
 from ewb_ident.data.writers import write_trace
 from ewb_ident.rig.simulate import simulate_rig
 
@@ -316,12 +319,12 @@ def test_a_bad_start_value_blames_the_data_not_fix(rig, tmp_path):
         (lambda tmp: str(tmp / "/".join(["z" * 200] * 21)), r"the path is longer than 4096"),
     ],
 )
-def test_a_bad_out_is_one_line_before_any_work(rig, tmp_path, make, message):
-    line = refused(
-        runner.invoke(app, ["fit", str(rig), "--stage", "force", "--out", make(tmp_path)])
-    )
+def test_a_bad_out_is_one_line_before_any_work(rig, tmp_path, monkeypatch, make, message):
+    monkeypatch.chdir(tmp_path)  # an empty --out would write here
+    out = make(tmp_path)
+    line = refused(runner.invoke(app, ["fit", str(rig), "--stage", "force", "--out", out]))
     assert re.search(message, line), line
-    assert not (tmp_path / "fit.json").exists() and not Path("fit.json").exists()
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]
 
 
 def _dangling(tmp: Path) -> str:
@@ -643,3 +646,141 @@ def test_the_whole_misuse_corpus_behaves(tmp_path_factory, corpus_names):
     """Every case of the corpus, old and new (the old ones fit whole traces)."""
     for k in range(len(corpus_names)):
         _run_corpus_case(tmp_path_factory.mktemp("case"), k)
+
+
+# ----------------------------------------------------------------------- properties
+
+#: Examples per property: a few dozen in the default suite, many more with
+#: EWB_MISUSE_PROFILE=slow.
+settings.register_profile(
+    "misuse",
+    max_examples=25,
+    deadline=None,
+    database=None,  # nothing written into the checkout
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.register_profile("misuse-slow", settings.get_profile("misuse"), max_examples=500)
+PROFILE = settings.get_profile("misuse-slow" if os.environ.get("EWB_MISUSE_PROFILE") == "slow"
+                               else "misuse")  # fmt: skip
+
+CELLS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=64).map(repr),
+    st.integers(-(10**6), 10**6).map(str),
+    st.sampled_from(["", "nan", "n/a", "1,5", "1e400", " 3 ", "true", "0x10", "-"]),
+)
+NAMES = st.sampled_from([*COLUMNS, "t", "angle", "lvdt", "junk", "", "time_s"])
+SIDECARS = st.dictionaries(
+    st.sampled_from(["r_eff_m", "sample_rate_hz", "disc_mode", "disc_inertia_kg_m2", "x"]),
+    st.one_of(
+        st.floats(allow_nan=False, width=64),
+        st.integers(),
+        st.text(max_size=5),
+        st.none(),
+        st.booleans(),
+    ),  # fmt: skip
+    max_size=4,
+)
+MAPPINGS = st.one_of(
+    st.none(),
+    st.dictionaries(
+        st.sampled_from(["t", "angle", "lvdt", "junk", "x_m"]),
+        st.one_of(
+            st.sampled_from(list(COLUMNS)),
+            st.fixed_dictionaries(
+                {
+                    "column": st.sampled_from(list(COLUMNS)),
+                    "unit": st.sampled_from(["mm", "m", "rad", "deg", "ms", "kN", "inch", "V"]),
+                }
+            ),  # fmt: skip
+        ),
+        max_size=3,
+    ),
+)
+
+
+def _one_line_trace_error(call) -> None:
+    """``call()`` returns, or raises a TraceError of one line; nothing else."""
+    try:
+        call()
+    except TraceError as err:
+        assert "\n" not in str(err) and str(err).strip(), repr(err)
+
+
+@PROFILE
+@given(
+    names=st.lists(NAMES, min_size=1, max_size=5),
+    rows=st.lists(st.lists(CELLS, min_size=5, max_size=5), max_size=80),
+    sidecar=st.one_of(st.none(), SIDECARS),
+    mapping=MAPPINGS,
+    check_units=st.booleans(),
+)
+def test_any_table_is_read_or_refused_in_one_line(names, rows, sidecar, mapping, check_units):
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "t.csv"
+        lines = [",".join(names), *(",".join(r[: len(names)]) for r in rows)]
+        path.write_text("\n".join(lines) + "\n")
+        if sidecar is not None:
+            path.with_suffix(".json").write_text(json.dumps(sidecar))
+        _one_line_trace_error(lambda: ei.read_trace(path, mapping=mapping, check_units=check_units))
+
+
+#: Each channel times every factor between two units of its family (length 1e3 and
+#: 1e6, angle 57.3, voltage, current and force 1e3, torque N*mm and kN*m, disc speed
+#: rpm as rad/s): the rig's trace so scaled is refused naming the column. (A disc speed
+#: a tenth of the true one is a slower disc, not a wrong unit: not in the list.)
+UNIT_FACTORS = [
+    *[("x_m", k) for k in (1e-6, 1e-3, 1e3, 1e6)],
+    *[("theta_deg", k) for k in (math.pi / 180.0, 180.0 / math.pi)],
+    *[(c, k) for c in ("voltage_V", "current_A", "force_N", "torque_Nm") for k in (1e-3, 1e3)],
+    ("disc_speed_rad_s", 60.0 / (2.0 * math.pi)),
+]
+
+
+@pytest.mark.parametrize(("column", "factor"), UNIT_FACTORS)
+def test_every_channel_scaled_by_a_unit_factor_is_refused(rig_trace, column, factor):
+    from ewb_ident.data.validation import validate
+
+    scaled = {**rig_trace.channels, column: rig_trace[column] * factor}
+    trace = dataclasses.replace(rig_trace, channels=scaled)
+    with pytest.raises(TraceError) as err:
+        validate(trace, stages=("chain",))
+    text = str(err.value)
+    assert "\n" not in text
+    named = {column}
+    if column in ("force_N", "torque_Nm") and factor < 1.0:
+        named |= {"force_N", "torque_Nm"}  # the friction they imply, or no clamping
+    if column in ("x_m", "theta_deg"):
+        named |= {"theta_deg"}  # the gap's lead names the pinion angle
+    assert any(f"column '{c}'" in text for c in named), text
+
+
+@settings(PROFILE, max_examples=min(PROFILE.max_examples, 12))
+@given(
+    stage=st.sampled_from(["force", "torque", "gap", "brake"]),
+    fix=st.one_of(st.none(), st.sampled_from(["a=1e-3", "mu=2", "R=x", "b", "F_rt=nan", "Z=1"])),
+    free=st.one_of(st.none(), st.sampled_from(["a,b", "mu", "a,,", "kb", ""])),
+    r_eff=st.one_of(st.none(), st.sampled_from(["0.15", "0.5", "0.51", "-1", "nan", "x"])),
+    out=st.sampled_from(["out", "", "a/../out", "x" * 300]),
+)
+def test_any_fit_options_give_a_result_or_one_line(rig, stage, fix, free, r_eff, out):
+    """Random option sets on the short trace: exit 0 or 3 with fit.json, or exit 2 with
+    one line and nothing written; never a traceback."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        target = str(Path(folder) / out) if out else ""
+        argv = ["fit", str(rig), "--stage", stage, "--out", target]
+        for option, value in (("--fix", fix), ("--free", free), ("--r-eff", r_eff)):
+            if value is not None:
+                argv += [option, value]
+        result = runner.invoke(app, argv)
+        assert result.exception is None or isinstance(result.exception, SystemExit), argv
+        assert result.exit_code in (0, 2, 3), (argv, result.output)
+        if result.exit_code == 2:
+            lines = [line for line in result.output.splitlines() if line.strip()]
+            assert len(lines) == 1 or "Usage:" in result.output, result.output
+            assert not [p for p in Path(folder).rglob("*") if p.is_file()], argv
+        else:
+            assert (Path(target) / "fit.json").is_file(), argv

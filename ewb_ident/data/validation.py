@@ -552,7 +552,9 @@ def validate(
 UNITS_UNCHECKED = "_units_unchecked"
 
 
-def check_traces(traces: Any, *, argument: str = "traces") -> tuple[Trace, ...]:
+def check_traces(
+    traces: Any, *, argument: str = "traces", stages: Iterable[str] | str | None = None
+) -> tuple[Trace, ...]:
     """The one check of the traces a command or a library function is given.
 
     ``fit``, ``sample``, ``diagnose`` and ``validate`` of the Python API call this on
@@ -568,6 +570,9 @@ def check_traces(traces: Any, *, argument: str = "traces") -> tuple[Trace, ...]:
         One trace or a sequence of traces.
     argument
         The argument's name, for messages.
+    stages
+        Stages the traces are to serve (:func:`check_stages`: their columns, and a force
+        that clamps for the force, torque and chain stages).
 
     Returns
     -------
@@ -602,7 +607,7 @@ def check_traces(traces: Any, *, argument: str = "traces") -> tuple[Trace, ...]:
                 " not a Trace;"
                 " read it first with ewb_ident.read_trace"
             )
-        validate(tr, check_units=not tr.sidecar.get(UNITS_UNCHECKED, False))
+        validate(tr, stages=stages, check_units=not tr.sidecar.get(UNITS_UNCHECKED, False))
     _check_repeats(out)
     return out
 

@@ -36,7 +36,7 @@ from ewb_ident.data.metrics import (
     noise_floor,
     noise_sigma,
 )
-from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_OUTPUTS, STAGE_PARAMS
+from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_OUTPUTS, STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combinations
@@ -275,9 +275,17 @@ def fit(
         ``traces`` not traces (a path: read it first), ``free`` or ``per_trace`` a
         string, ``fixed`` or ``start`` values that are not numbers.
     """
-    traces = check_traces(traces)
+    traces = check_traces(traces, stages=(stage,) if stage in STAGES else None)
     free, per_trace, fixed, start = check_parameter_options(free, per_trace, fixed, start)
     return _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol)
+
+
+@numerics
+def fit_checked_traces(trace: Trace, *, stage: Stage) -> FitResult:
+    """:func:`fit` of one stage, with its defaults, of a trace its caller has checked
+    (the diagnosis's baseline fits of every stage the trace's columns serve, whether or
+    not its force clamps)."""
+    return _fit((trace,), stage, None, None, None, None, EXPONENTIAL, 300, 1e-8)
 
 
 def _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol) -> FitResult:
