@@ -69,9 +69,9 @@ class SampleError(ValueError):
     """A posterior that cannot be set up as asked (the message says what to change)."""
 
 
-#: Most coordinates a posterior samples (every model parameter, the start angles of a
-#: few traces and a mechanism's parameters), for memory estimates.
-MAX_DIMENSION = 24
+#: Coordinates a whole-chain posterior typically samples (the model's free parameters
+#: and a start angle), for memory estimates made before the fit says how many.
+TYPICAL_DIMENSION = 16
 
 
 def physical_memory() -> float:
@@ -108,11 +108,11 @@ class SamplerSettings:
         """An estimate of the memory the ensembles need on traces of ``n_samples``
         samples in all: one batch of half the walkers evaluated at once (some 80 bytes
         per walker and sample: residuals of every channel and their intermediates), and
-        the kept chains (every ensemble's walkers by the step limit, at most
-        :data:`MAX_DIMENSION` coordinates of 8 bytes)."""
-        walkers = self.n_walkers or 4 * MAX_DIMENSION
+        the kept chains (every ensemble's walkers by the step limit, by
+        :data:`TYPICAL_DIMENSION` coordinates of 8 bytes)."""
+        walkers = self.n_walkers or 4 * TYPICAL_DIMENSION
         batch = walkers / 2 * n_samples * 80.0
-        chains = self.n_ensembles * walkers * self.step_limit * MAX_DIMENSION * 8.0
+        chains = self.n_ensembles * walkers * self.step_limit * TYPICAL_DIMENSION * 8.0
         return batch + chains
 
     def check(self, names: Mapping[str, str] | None = None, n_samples: int | None = None) -> None:
@@ -174,7 +174,7 @@ class SamplerSettings:
         if n_samples is not None:
             need, have = s.memory_bytes(n_samples), physical_memory()
             if need > 0.5 * have:
-                walkers = s.n_walkers or f"up to {4 * MAX_DIMENSION} (the default)"
+                walkers = s.n_walkers or f"about {4 * TYPICAL_DIMENSION} (the default)"
                 raise SampleError(
                     f"{walkers} walkers in {s.n_ensembles} ensembles for up to {s.step_limit}"
                     f" steps on {n_samples:,} samples need about {need / 1e9:.3g} GB, more than"
