@@ -87,7 +87,10 @@ def check_out(out: Path, *, folder: bool = True) -> None:
     if isinstance(out, _EmptyOut):
         fail("--out is empty (it would write into the current folder); name the output folder")
     name = f"--out {out}" if folder else str(out)
-    limit = os.pathconf(_existing(out), "PC_NAME_MAX")
+    try:
+        limit = os.pathconf(_existing(out), "PC_NAME_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows) or no answer
+        limit = 255
     long_part = next((p for p in out.parts if len(os.fsencode(p)) > limit), None)
     if long_part is not None:
         fail(f"--out: the name {long_part[:40]}... is longer than {limit} bytes; use a shorter one")
