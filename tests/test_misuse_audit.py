@@ -438,6 +438,19 @@ def test_a_sidecar_key_given_twice_is_refused(rig, tmp_path):
     assert "dup.json: key 'r_eff_m': the key is given twice" in line
 
 
+def test_the_friction_check_uses_the_pad_radius_given_on_the_command_line(rig, tmp_path):
+    """A sidecar with a wrong radius (0.02 m: a friction coefficient of 2.6) is refused;
+    --r-eff 0.15 overrides it before the check, and the fit runs."""
+    path = tmp_path / "r.csv"
+    path.write_text(rig.read_text())
+    path.with_suffix(".json").write_text(json.dumps({"r_eff_m": 0.02}))
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(path), "--stage", "torque", "--out", str(out)]))
+    assert "pad radius 0.02 m means a pad friction coefficient" in line
+    argv = ["fit", str(path), "--stage", "torque", "--r-eff", "0.15", "--out", str(out)]
+    assert runner.invoke(app, argv).exit_code == 0
+
+
 @pytest.mark.parametrize("radius", [0.02, 0.5])
 def test_sidecar_and_r_eff_share_one_range(rig, tmp_path, radius):
     path = tmp_path / "r.csv"

@@ -247,7 +247,12 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
     import dataclasses
 
     from ewb_ident.data.readers import read_trace
-    from ewb_ident.data.validation import R_EFF_RANGE_M, check_traces, r_eff_ok
+    from ewb_ident.data.validation import (
+        R_EFF_RANGE_M,
+        UNITS_UNCHECKED,
+        check_traces,
+        r_eff_ok,
+    )
 
     if r_eff is not None and not r_eff_ok(r_eff):
         lo, hi = R_EFF_RANGE_M
@@ -259,12 +264,16 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
             mapping=mapping,
             stages=stages,
             nan_policy="interpolate" if fill_gaps else "raise",
-            check_units=not no_unit_check,
+            # With --r-eff the units (the friction torque and force imply) are checked
+            # below, with the pad radius given.
+            check_units=not no_unit_check and r_eff is None,
         )
         if tr.sidecar.get("_csv_dialect"):
             typer.echo(f"{p}: read as {tr.sidecar['_csv_dialect']}", err=True)
         if r_eff is not None:
             side = dict(tr.sidecar) | {"r_eff_m": float(r_eff), "_r_eff_source": "--r-eff"}
+            if not no_unit_check:
+                side.pop(UNITS_UNCHECKED, None)
             tr = dataclasses.replace(tr, sidecar=side)
         out.append(tr)
     return list(check_traces(out))
