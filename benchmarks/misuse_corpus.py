@@ -88,6 +88,7 @@ def cases(tmp: Path) -> list[tuple[str, list[str], int]]:
     (tmp / "bad.toml").write_text("study = 5\n")
     (tmp / "evil.toml").write_text('[study]\nscript = "/etc/passwd.py"\n')
     t = str(_copy(tmp))
+    issue38 = _issue38_files(tmp)
     return [
         ("fit: time runs backwards", ["fit", str(_copy(tmp, "back", _cell(10, "time_s", "0.0"))), "--out", o], 2),
         ("fit: empty cell", ["fit", str(_copy(tmp, "empty", _cell(20, "force_N", ""))), "--out", o], 2),
@@ -124,7 +125,67 @@ def cases(tmp: Path) -> list[tuple[str, list[str], int]]:
         ("report: --out below a file", ["report", t, "--out", str(tmp / "afile" / "o")], 2),
         ("compare: missing --new", ["compare", "--old", t, "--out", o], 2),
         ("unknown command", ["dance"], 2),
+        # Issue 38: a fresh audit's cases (tests/test_misuse_audit.py holds their messages).
+        ("fit: x in m, mapping declares mm", ["fit", issue38["x_in_m"], "--map", issue38["map_mm"], "--out", o], 2),
+        ("fit: theta in deg, mapping declares rad", ["fit", issue38["theta_in_deg"], "--map", issue38["map_rad"], "--out", o], 2),
+        ("fit: x in mm with --no-unit-check", ["fit", str(_copy(tmp, "mm2", _scale("x_m", 1e3))), "--no-unit-check", "--out", o], 2),
+        ("fit: the same trace twice", ["fit", t, t, "--out", o], 2),
+        ("fit: --out ''", ["fit", t, "--out", ""], 2),
+        ("fit: --out a dangling link", ["fit", t, "--out", issue38["dangling"]], 2),
+        ("fit: --out a 300-character name", ["fit", t, "--out", str(tmp / ("y" * 300))], 2),
+        ("fit: sidecar r_eff_m given twice", ["fit", issue38["dup_key"], "--out", o], 2),
+        ("validate: fit.json with L = 0", ["validate", t, "--params", issue38["fit_L0"], "--out", o], 2),
+        ("validate: fit.json with R = -1", ["validate", t, "--params", issue38["fit_Rneg"], "--out", o], 2),
+        ("simulate: --params with L = 0", ["simulate", str(tmp / "s.csv"), "--params", issue38["fit_L0"]], 2),
+        ("simulate: --seed -1", ["simulate", str(tmp / "s.csv"), "--seed", "-1", "--vary", "0.1"], 2),
+        ("compare: NEW without torque_Nm", ["compare", "--old", t, "--new", str(_copy(tmp, "noT", _drop("torque_Nm"))), "--out", o], 2),
+        ("sample: --walkers 2000000", ["sample", t, "--walkers", "2000000", "--out", o], 2),
+        ("sample: --ensembles 5000 --draws 5000", ["sample", t, "--ensembles", "5000", "--draws", "5000", "--out", o], 2),
+        ("diagnose: --catalog ''", ["diagnose", t, "--catalog", "", "--out", o], 2),
+        ("study: an empty [rig] list", ["study", issue38["empty_rig"], "--out", o], 2),
+        ("study: repeats = 1000000000", ["study", issue38["huge"], "--out", o], 2),
+        ("study: effects as a string", ["study", issue38["effects_str"], "--out", o], 2),
+        ("study: unknown [task] option", ["study", issue38["task_opt"], "--out", o], 2),
+        ("study: --scheduler malformed", ["study", issue38["empty_rig"], "--scheduler", "tcp://host", "--out", o], 2),
+        ("study: a script that raises", ["study", issue38["raises"], "--out", o], 3),
     ]  # fmt: skip
+
+
+def _issue38_files(tmp: Path) -> dict[str, str]:
+    """The files issue 38's cases read: wrongly declared units, a duplicate sidecar key,
+    parameters files outside the bounds, study definitions."""
+    import json
+
+    out: dict[str, str] = {}
+    lines = STEPS.read_text().splitlines()
+    for name, column, source in (("x_in_m", "x_m", "lvdt"), ("theta_in_deg", "theta_deg", "pot")):
+        path = tmp / f"{name}.csv"
+        path.write_text("\n".join([lines[0].replace(column, source), *lines[1:]]) + "\n")
+        out[name] = str(path)
+    (tmp / "map_mm.json").write_text(json.dumps({"lvdt": {"column": "x_m", "unit": "mm"}}))
+    (tmp / "map_rad.json").write_text(json.dumps({"pot": {"column": "theta_deg", "unit": "rad"}}))
+    out["map_mm"], out["map_rad"] = str(tmp / "map_mm.json"), str(tmp / "map_rad.json")
+    dup = _copy(tmp, "dup")
+    dup.with_suffix(".json").write_text('{"r_eff_m": 0.15, "r_eff_m": 0.5}')
+    out["dup_key"] = str(dup)
+    (tmp / "link").symlink_to(tmp / "nowhere")
+    out["dangling"] = str(tmp / "link")
+    truth = json.loads((DATA / "steps_200hz.truth.json").read_text())["params"]
+    for name, key, value in (("fit_L0", "L", 0.0), ("fit_Rneg", "R", -1.0)):
+        (tmp / f"{name}.json").write_text(json.dumps({"params": truth | {key: value}}))
+        out[name] = str(tmp / f"{name}.json")
+    head = '[study]\nname = "s"\ntask = "fit"\n'
+    for name, text in (
+        ("empty_rig", head + "[rig]\nprofile = []\n"),
+        ("huge", head + "repeats = 1000000000\n"),
+        ("effects_str", head + "[rig]\neffects = 'backlash'\n"),
+        ("task_opt", head + "[task]\nspeed = 'fast'\n"),
+        ("raises", '[study]\nname = "s"\nscript = "raises.py"\n'),
+    ):
+        (tmp / f"{name}.toml").write_text(text)
+        out[name] = str(tmp / f"{name}.toml")
+    (tmp / "raises.py").write_text("def run(out, progress=None):\n    raise KeyError('lost')\n")
+    return out
 
 
 def main() -> None:

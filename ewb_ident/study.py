@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import time
 import tomllib
 from collections.abc import Callable
@@ -92,6 +93,71 @@ class Study:
         return out
 
 
+#: Profiles a study's rig may run ("through_c": position control past full clamping).
+PROFILES = ("steps", "position", "staircase", "through_c")
+
+#: Most cases a study may define (checked before any is built): 10,000 three-second
+#: fits take about a day on two cores.
+MAX_CASES = 10_000
+
+
+def _check_rig_value(path: Path, key: str, value: Any) -> None:
+    """One value of a [rig] key, checked before any case runs."""
+    from ewb_ident.rig.effects import EFFECTS
+
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+    ranges = {
+        "sample_rate_hz": (100.0, 1000.0),
+        "duration_s": (0.2, 600.0),
+        "noise_scale": (0.0, 100.0),
+        "vary": (0.0, 0.5),
+    }
+    if key == "profile":
+        if value not in PROFILES:
+            raise StudyError(
+                f"{path}: [rig] profile {value!r} is unknown; use one of {', '.join(PROFILES)}"
+            )
+    elif key == "effects":
+        names = value if isinstance(value, list) else [value]
+        bad = [e for e in names if not isinstance(e, str) or e not in EFFECTS]
+        if bad:
+            raise StudyError(
+                f"{path}: [rig] effects: {bad[0]!r} is not a catalog id; use {sorted(EFFECTS)}"
+            )
+    elif key in ranges:
+        lo, hi = ranges[key]
+        if not number(value) or not lo <= value <= hi:
+            raise StudyError(
+                f"{path}: [rig] {key} must be a number from {lo} to {hi}, got {value!r}"
+            )
+
+
+def _check_task_options(path: Path, task: str, options: dict[str, Any]) -> None:
+    """The [task] table's keys: the keyword arguments its task passes on (``fit``'s,
+    or ``compare``'s with ``shift`` and ``scale``), checked before any case runs."""
+    import inspect
+
+    if task == "fit":
+        from ewb_ident.inference.least_squares import fit
+
+        allowed = set(inspect.signature(fit).parameters) - {"traces"}
+    else:
+        from ewb_ident.inference.compare import compare
+
+        allowed = (set(inspect.signature(compare).parameters) - {"old", "new"}) | {
+            "shift",
+            "scale",
+        }
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise StudyError(
+            f"{path}: [task] option {unknown[0]!r} is unknown for task {task!r}; allowed:"
+            f" {sorted(allowed)}"
+        )
+
+
 def load_study(path: str | Path) -> Study:
     """Read and check a study definition (TOML).
 
@@ -133,6 +199,13 @@ def load_study(path: str | Path) -> Study:
         script = (path.parent / name).resolve()
         if not script.is_file():
             raise StudyError(f"{path}: [study] script {name!r} not found beside it")
+        # Resolved, symbolic links included: the file that runs must itself be a .py
+        # file in the study file's own folder, not a link to code elsewhere.
+        if script.parent != path.parent.resolve() or script.suffix != ".py":
+            raise StudyError(
+                f"{path}: [study] script {name!r} is a link to {script}, outside the study"
+                " file's own folder or not a .py file; copy the script beside the study file"
+            )
         return Study(
             name=str(head.get("name", path.stem)),
             task="script",
@@ -157,13 +230,29 @@ def load_study(path: str | Path) -> Study:
         value = rig.get(key, default)
         # effects is a list already: a list of lists is a grid of effect sets
         if key == "effects":
+            if not isinstance(value, list):
+                raise StudyError(
+                    f"{path}: [rig] effects must be a list of catalog ids, e.g. ['backlash'],"
+                    f" got {value!r}"
+                )
             grid[key] = value if value and isinstance(value[0], list) else [value]
         else:
             grid[key] = value if isinstance(value, list) else [value]
+        if not grid[key]:
+            raise StudyError(f"{path}: [rig] {key} is an empty list; give at least one value")
+        for v in grid[key]:
+            _check_rig_value(path, key, v)
     repeats = head.get("repeats", 1)
-    if not isinstance(repeats, int) or repeats < 1:
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise StudyError(
             f"{path}: [study] repeats must be a positive whole number, got {repeats!r}"
+        )
+    _check_task_options(path, task, doc.get("task", {}))
+    n_cases = math.prod(len(v) for v in grid.values()) * repeats
+    if n_cases > MAX_CASES:
+        raise StudyError(
+            f"{path}: {n_cases:,} cases (the [rig] grid times repeats = {repeats:,}) is more"
+            f" than {MAX_CASES:,}; use fewer repeats or grid values, or split the study"
         )
     return Study(
         name=str(head.get("name", path.stem)),
@@ -305,8 +394,35 @@ def run_script(study: Study, out_dir: Path, progress=None):
 
     spec = importlib.util.spec_from_file_location(f"_study_{study.name}", study.script)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.run(Path(out_dir), progress=progress, **study.options)
+    try:
+        spec.loader.exec_module(module)
+        out = module.run(Path(out_dir), progress=progress, **study.options)
+    except Exception as err:  # the script's own error, reported as the script's
+        raise ScriptError(_where(err, study.script) + f"{type(err).__name__}: {err}") from err
+    if not (
+        isinstance(out, tuple)
+        and len(out) == 2
+        and hasattr(out[0], "to_csv")
+        and isinstance(out[1], str)
+    ):
+        raise ScriptError(
+            f"{study.script}: run() returned {type(out).__name__}, not (table, Markdown):"
+            " return a pandas DataFrame and the report's text"
+        )
+    return out
+
+
+class ScriptError(RuntimeError):
+    """A study script that raised or returned the wrong types: the script's problem,
+    one line naming its file and line (the CLI exits 3)."""
+
+
+def _where(err: BaseException, script: Path) -> str:
+    """``file:line: `` of the innermost frame of ``err`` in ``script``."""
+    import traceback
+
+    frames = [f for f in traceback.extract_tb(err.__traceback__) if Path(f.filename) == script]
+    return f"{script}:{frames[-1].lineno}: " if frames else f"{script}: "
 
 
 def run_study(
@@ -514,6 +630,14 @@ def run_batch(
         if progress:
             progress(reused + n, len(jobs), records[k], False)
     return [r for r in records if r is not None], reused
+
+
+def failed_cases(table) -> int:
+    """How many cases of a study's table failed (a non-empty ``error``)."""
+    if "error" not in table or "case" not in table:
+        return 0
+    errors = table["error"].notna() & (table["error"].astype(str) != "")
+    return int(table.loc[errors, "case"].nunique())
 
 
 def summarise(study: Study, table) -> str:

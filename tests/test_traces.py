@@ -518,7 +518,7 @@ BAD_CASES: list[tuple[str, Maker, dict, str]] = [
         "r-eff-mm",
         csv_of(frame(), sidecar={"r_eff_m": 150}),
         {},
-        r"trace\.json: key 'r_eff_m': 150 is not a number in \(0\.02, 0\.5\) m; give",
+        r"trace\.json: key 'r_eff_m': 150 is not a number from 0\.02 to 0\.5 m; give",
     ),
     (
         "r-eff-text",
@@ -542,28 +542,33 @@ BAD_CASES: list[tuple[str, Maker, dict, str]] = [
         "x-mm",
         csv_of(scaled("x_m", 1e3)),
         {},
-        r"trace\.csv: column 'x_m', row 600: \|x\| reaches [\d.]+ m, above 0\.01 m: looks "
-        r"like millimetres; map the column with its unit \(mapping=\{'x_m': \{'column': "
+        r"trace\.csv: column 'x_m', row 600: the piston's \|x\| reaches [\d.]+ m, outside the "
+        r"plausible 1e-05 to 0\.01 m: looks like millimetres \('mm'\); map the column with its "
+        r"unit \(mapping=\{'x_m': \{'column': "
         r"'x_m', 'unit': 'mm'\}\}\).*check_units=False \(CLI --no-unit-check\)",
     ),
     (
         "theta-rad",
         csv_of(scaled("theta_deg", math.pi / 180)),
         {},
-        r"column 'theta_deg', row -: \|theta\| stays below 8\.72665 deg, less than 4\*pi = "
-        r"12\.57: looks like radians; map the column with its unit .*'unit': 'rad'",
+        r"column 'theta_deg', row -: the pinion's \|theta\| stays below 8\.72665 deg, outside "
+        r"the plausible 12\.5664 to 40000 deg: looks like radians \('rad'\); map the column "
+        r"with its unit .*'unit': 'rad'",
     ),
     (
         "theta-rad-mapped",
         csv_of(scaled("theta_deg", math.pi / 180).rename(columns={"theta_deg": "pot"})),
         {"mapping": {"pot": "theta_deg"}},
-        r"column 'pot' \(mapped to 'theta_deg'\), row -: .*looks like radians; .*\{'pot': ",
+        r"column 'pot' \(mapped to 'theta_deg'\), row -: .*looks like radians \('rad'\); "
+        r".*\{'pot': ",
     ),
     (
         "force-huge",
         csv_of(scaled("force_N", 1e3)),
         {},
-        r"column 'force_N', row \d+: \|force\| reaches 3\.49991e\+06 N, above 50000 N: implausible",
+        r"column 'force_N', row \d+: the clamping force's peak \|F\| is 3\.49991e\+06 N, "
+        r"outside the plausible 0 "
+        r"to 50000 N; check the sensor's scaling",
     ),
     (
         "voltage-mV",

@@ -19,6 +19,7 @@ from ewb_ident.cli.options import (
     check_out,
     fail,
     read_traces,
+    writing,
 )
 
 
@@ -37,7 +38,7 @@ def compare(
     90 % intervals and P(changed), and the brake torque at the seed's operating point;
     writes OUT/compare.json. Exits 3 when a fit did not converge."""
     check_out(out)
-    from ewb_ident.data.outputs import write_json
+    from ewb_ident.data.outputs import json_writer, write_run
     from ewb_ident.inference.compare import compare as run_compare
 
     try:
@@ -46,8 +47,8 @@ def compare(
         result = run_compare(trs_old, trs_new, stage=stage)
     except bad_input_errors() as err:
         fail(str(err))
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "compare.json", result.to_json())
+    with writing(out):
+        write_run(out, "compare", [(out / "compare.json", json_writer(result.to_json()))])
     typer.echo(result.summary())
     typer.echo(f"wrote {out / 'compare.json'}")
     if not (result.old.converged and result.new.converged):

@@ -20,6 +20,7 @@ from ewb_ident.cli.options import (
     fail,
     name_list,
     read_traces,
+    writing,
 )
 
 
@@ -59,6 +60,7 @@ def diagnose(
             )
     except (*bad_input_errors(), DiagnoseError) as err:
         fail(str(err))
-    paths = write_diagnosis(result, out, extra={"traces": [str(trace)]}, figures=figures)
+    with writing(out):
+        paths = write_diagnosis(result, out, extra={"traces": [str(trace)]}, figures=figures)
     typer.echo(result.summary())
     typer.echo(f"wrote {out / 'diagnosis.json'} and {len(paths) - 1} figure(s)")

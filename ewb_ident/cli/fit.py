@@ -26,6 +26,7 @@ from ewb_ident.cli.options import (
     mechanism_option,
     name_list,
     read_traces,
+    writing,
 )
 
 
@@ -63,7 +64,7 @@ def fit(
         corrected_options(traces, stage, free, per_trace, fix, integrator)
         _fit_corrected(traces[0], out, *mechanisms, mapping, fill_gaps, no_unit_check, r_eff)
         return
-    from ewb_ident.data.outputs import write_json
+    from ewb_ident.data.outputs import json_writer, write_run
     from ewb_ident.inference.least_squares import fit as run_fit
     from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
     from ewb_ident.reporting.summaries import fit_summary
@@ -83,8 +84,8 @@ def fit(
     except bad_input_errors() as err:
         fail(str(err))
     document = result.to_json() | {"traces": [str(p) for p in traces]}
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "fit.json", document)
+    with writing(out):
+        write_run(out, "fit", [(out / "fit.json", json_writer(document))])
     typer.echo(fit_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
     if result.status != "ok":
@@ -94,7 +95,7 @@ def fit(
 def _fit_corrected(
     trace, out, mechanisms, learned, mapping, fill_gaps, no_unit_check, r_eff
 ) -> None:
-    from ewb_ident.data.outputs import write_json
+    from ewb_ident.data.outputs import json_writer, write_run
     from ewb_ident.diagnosis.corrected import fit_corrected
     from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.reporting.summaries import corrected_summary
@@ -104,8 +105,9 @@ def _fit_corrected(
         result = fit_corrected(tr, mechanisms, learned)
     except (*bad_input_errors(), DiagnoseError) as err:
         fail(str(err))
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "fit.json", result.to_json() | {"traces": [str(trace)]})
+    document = result.to_json() | {"traces": [str(trace)]}
+    with writing(out):
+        write_run(out, "fit", [(out / "fit.json", json_writer(document))])
     typer.echo(corrected_summary(result))
     typer.echo(f"wrote {out / 'fit.json'}")
     if not result.converged:

@@ -3,6 +3,7 @@ the checks every command makes before it starts work."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -26,7 +27,21 @@ EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTWORTHY = 3
 
 Traces = Annotated[list[Path], typer.Argument(help="Trace files (.csv, .parquet, .mat).")]
-OutDir = Annotated[Path, typer.Option("--out", "-o", help="Output folder (created if absent).")]
+
+
+class _EmptyOut(type(Path())):
+    """``--out ""`` as given (a plain Path of "" is the current folder)."""
+
+
+def _out_path(text: str) -> Path:
+    """``--out`` as given; an empty one is marked for :func:`check_out` to refuse."""
+    return _EmptyOut() if not text.strip() else Path(text)
+
+
+OutDir = Annotated[
+    Path,
+    typer.Option("--out", "-o", help="Output folder (created if absent).", parser=_out_path),
+]
 Mapping = Annotated[
     Path | None,
     typer.Option("--map", help="Column mapping (JSON/TOML): source name -> column and unit."),
@@ -69,6 +84,23 @@ def check_out(out: Path, *, folder: bool = True) -> None:
     """Refuse an output location that cannot be written, before any work starts."""
     import os
 
+    if isinstance(out, _EmptyOut):
+        fail("--out is empty (it would write into the current folder); name the output folder")
+    name = f"--out {out}" if folder else str(out)
+    try:
+        limit = os.pathconf(_existing(out), "PC_NAME_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows) or no answer
+        limit = 255
+    long_part = next((p for p in out.parts if len(os.fsencode(p)) > limit), None)
+    if long_part is not None:
+        fail(f"--out: the name {long_part[:40]}... is longer than {limit} bytes; use a shorter one")
+    if len(os.fsencode(os.path.abspath(out))) >= 4096:
+        fail(f"--out {str(out)[:40]}...: the path is longer than 4096 bytes; use a shorter one")
+    if out.is_symlink() and not out.exists():
+        fail(
+            f"{name}: a symbolic link to {os.readlink(out)}, which does not exist; remove the"
+            " link or name another location"
+        )
     if folder and out.exists() and not out.is_dir():
         fail(f"--out {out}: exists and is not a folder; name a folder (it is created)")
     if not folder and out.is_dir():
@@ -88,6 +120,40 @@ def check_out(out: Path, *, folder: bool = True) -> None:
         os.unlink(name)
     except OSError as err:
         fail(f"{out}: cannot write there ({probe}: {err.strerror}); choose another")
+
+
+def _existing(path: Path) -> Path:
+    """The nearest folder of ``path`` that exists (for file-system limits)."""
+    import os
+
+    probe = os.path.abspath(path)
+    while not os.path.isdir(probe) and probe != os.path.dirname(probe):
+        probe = os.path.dirname(probe)  # (isdir is False for a name too long, not an error)
+    return Path(probe)
+
+
+@contextlib.contextmanager
+def writing(out: Path, *, folder: bool = True):
+    """The results' writing: a file system that refuses it (a full disk, a quota, a
+    folder made read-only meanwhile) is one line and exit 2, and leaves nothing: the
+    atomic writes remove their temporary files, and a folder this run made is removed
+    again if it stayed empty."""
+    from ewb_ident.data.trace import TraceError
+
+    where = out if folder else out.parent
+    made = not where.exists()
+    try:
+        yield
+    except (OSError, TraceError) as err:  # (write_trace says which file, as TraceError)
+        if made:
+            with contextlib.suppress(OSError):
+                where.rmdir()  # only if empty
+        if isinstance(err, TraceError):
+            fail(str(err))
+        fail(
+            f"{out}: cannot write the results ({err.strerror or err}); free space or choose"
+            " another location"
+        )
 
 
 class Status:
@@ -178,14 +244,20 @@ def assignments(text: str | None, option: str) -> dict[str, float]:
 
 
 def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):
-    import math
+    import dataclasses
 
-    from ewb_ident.data.campaign import R_EFF_RANGE_M, with_pad_radius
+    from ewb_ident.data.campaign import with_pad_radius
     from ewb_ident.data.readers import read_trace
+    from ewb_ident.data.validation import (
+        R_EFF_RANGE_M,
+        UNITS_UNCHECKED,
+        check_traces,
+        r_eff_ok,
+    )
 
-    lo, hi = R_EFF_RANGE_M
-    if r_eff is not None and not (math.isfinite(r_eff) and lo <= r_eff <= hi):
-        fail(f"--r-eff must be a pad radius within {lo} to {hi} m, got {r_eff!r}")
+    if r_eff is not None and not r_eff_ok(r_eff):
+        lo, hi = R_EFF_RANGE_M
+        fail(f"--r-eff must be a pad radius from {lo} to {hi} m, got {r_eff!r}")
     out = []
     for p in paths:
         tr = read_trace(
@@ -193,12 +265,18 @@ def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_
             mapping=mapping,
             stages=stages,
             nan_policy="interpolate" if fill_gaps else "raise",
-            check_units=not no_unit_check,
+            # With --r-eff the units (the friction torque and force imply) are checked
+            # below, with the pad radius given.
+            check_units=not no_unit_check and r_eff is None,
         )
         if tr.sidecar.get("_csv_dialect"):
             typer.echo(f"{p}: read as {tr.sidecar['_csv_dialect']}", err=True)
-        out.append(with_pad_radius(tr, r_eff))
-    return out
+        tr = with_pad_radius(tr, r_eff)
+        if r_eff is not None and not no_unit_check:  # checked now, with the pad radius
+            side = {k: v for k, v in tr.sidecar.items() if k != UNITS_UNCHECKED}
+            tr = dataclasses.replace(tr, sidecar=side)
+        out.append(tr)
+    return list(check_traces(out))
 
 
 def bad_input_errors() -> tuple[type[Exception], ...]:

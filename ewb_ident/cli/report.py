@@ -22,6 +22,7 @@ from ewb_ident.cli.options import (
     fail,
     progress_bar,
     read_traces,
+    writing,
 )
 
 
@@ -103,7 +104,8 @@ def report(
         corrected_note=cnote,
         command=command_line(),
     )
-    path = write_report(out, page, figures)
+    with writing(out):
+        path = write_report(out, page, figures)
     if diag is not None:
         typer.echo(diag.summary())
     typer.echo(headline(result, post, diag, cpost))

@@ -27,6 +27,7 @@ from ewb_ident.cli.options import (
     name_list,
     progress_bar,
     read_traces,
+    writing,
 )
 
 
@@ -140,6 +141,8 @@ def sample(
         trs = read_traces(
             traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check, r_eff
         )
+        # The memory the settings need, from the traces' length, in the options' spelling.
+        SamplerSettings(**settings).check(names=_OPTION_NAMES, n_samples=sum(t.n for t in trs))
         if bar is not None:
             bar.start()
         common = dict(priors=priors, progress=progress, **settings)
@@ -186,17 +189,19 @@ _OPTION_NAMES = {
 
 def _write(out, result, traces) -> None:
     """summary.json, posterior.nc and pairs.png, atomically."""
-    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.data.outputs import json_text, write_run
     from ewb_ident.reporting.report_figures import pair_figure
 
     text = json_text(result.to_summary_json() | {"traces": [str(p) for p in traces]})
     idata, fig = result.to_inference_data(), pair_figure(result)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(
-        [
-            (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
-            # Uncompressed: zlib costs a noticeable share of a cached run to save 8 %.
-            (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp), compress=False)),
-            (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
-        ]
-    )
+    with writing(out):
+        write_run(
+            out,
+            "sample",
+            [
+                (out / "summary.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+                # Uncompressed: zlib costs a noticeable share of a cached run to save 8 %.
+                (out / "posterior.nc", lambda tmp: idata.to_netcdf(str(tmp), compress=False)),
+                (out / "pairs.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+            ],
+        )

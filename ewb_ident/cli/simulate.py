@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from ewb_ident.cli.options import app, check_out, fail
+from ewb_ident.cli.options import app, check_out, fail, writing
 
 
 @app.command()
@@ -53,7 +53,7 @@ def simulate(
     import numpy as np
 
     from ewb_ident import rig
-    from ewb_ident.data.outputs import write_json
+    from ewb_ident.data.outputs import json_writer
     from ewb_ident.data.writers import write_trace
 
     if out.suffix.lower() not in (".csv", ".parquet"):
@@ -61,6 +61,8 @@ def simulate(
     check_out(out, folder=False)
     import math
 
+    if seed < 0:
+        fail(f"--seed must be a non-negative whole number, got {seed}")
     if not (math.isfinite(duration) and 0 < duration <= 600):
         fail(f"--duration must be within (0, 600] s, got {duration!r}")
     if not (math.isfinite(vary) and 0 <= vary <= 0.5):
@@ -99,10 +101,11 @@ def simulate(
         )
     except rig.RigError as err:
         fail(str(err))
-    out.parent.mkdir(parents=True, exist_ok=True)
     truth_path = out.with_suffix(".truth.json")
-    write_trace(trace, out)
-    write_json(truth_path, truth)
+    with writing(out, folder=False):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        # The truth in the same set as the table and its sidecar: all three or none.
+        write_trace(trace, out, extra=[(truth_path, json_writer(truth))])
     typer.echo(f"wrote {out} ({trace.n} samples at {trace.sample_rate_hz:g} Hz) and {truth_path}")
 
 

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ewb_ident.cli.options import OutDir, app, check_out, fail
+from ewb_ident.cli.options import EXIT_UNTRUSTWORTHY, OutDir, app, check_out, fail, writing
 
 
 @app.command()
@@ -20,14 +20,21 @@ def study(
     ] = None,
 ) -> None:
     """Run a batch study: writes OUT/results.csv (one row per case and parameter) and
-    OUT/report.md."""
+    OUT/report.md. Exits 3 when any case failed (its error is in results.csv)."""
     check_out(out)
+    import re
+
+    address = r"(tcp|tls|ws|wss)://[^\s:/]+:\d{1,5}|inproc://\S+"
+    if scheduler is not None and not re.fullmatch(address, scheduler):
+        fail(f"--scheduler {scheduler!r} is not a scheduler address; give one like tcp://host:8786")
     from rich.progress import Progress
 
-    from ewb_ident.data.outputs import atomic_write
+    from ewb_ident.data.outputs import write_run
     from ewb_ident.study import (
+        ScriptError,
         StudyError,
         cluster_description,
+        failed_cases,
         load_study,
         run_script,
         run_study,
@@ -57,19 +64,36 @@ def study(
             bar.update(job, completed=done, total=total)
 
         if spec.script is not None:
-            table, report = run_script(spec, out, progress=progress)
+            try:
+                table, report = run_script(spec, out, progress=progress)
+            except ScriptError as err:
+                typer.echo(f"error: {str(err).splitlines()[0] if str(err) else err}", err=True)
+                raise typer.Exit(EXIT_UNTRUSTWORTHY) from None
         else:
             try:
                 table = run_study(spec, scheduler=client, progress=progress)
+            except StudyError as err:
+                fail(str(err))
             finally:
                 if client is not None:
                     client.close()
             report = summarise(spec, table)
-    atomic_write(
-        [
-            (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
-            (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
-        ]
-    )
+    with writing(out):
+        write_run(
+            out,
+            "study",
+            [
+                (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
+                (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
+            ],
+        )
     typer.echo(report)
     typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
+    failed = failed_cases(table)
+    if failed:
+        total = len(spec.cases()) if spec.script is None else failed
+        typer.echo(
+            f"{failed} of {total} cases failed (their errors are in {out / 'results.csv'})",
+            err=True,
+        )
+        raise typer.Exit(EXIT_UNTRUSTWORTHY)

@@ -19,6 +19,7 @@ from ewb_ident.cli.options import (
     check_out,
     fail,
     read_traces,
+    writing,
 )
 
 
@@ -36,7 +37,7 @@ def validate(
     error against the seed's 10 % acceptance and the trace's noise floor; writes
     OUT/validate.json and OUT/validate.png. Exits 3 outside the seed's acceptance."""
     check_out(out)
-    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.data.outputs import json_text, write_run
     from ewb_ident.diagnosis.corrected import CorrectedModel
     from ewb_ident.diagnosis.session import DiagnoseError
     from ewb_ident.inference.validate import ValidateError, load_document, load_params
@@ -53,13 +54,15 @@ def validate(
         fail(str(err))
     text = json_text(result.to_json() | {"trace_file": str(trace), "params_file": str(params)})
     fig = validation_figure(tr, result)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(
-        [
-            (out / "validate.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
-            (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
-        ]
-    )
+    with writing(out):
+        write_run(
+            out,
+            "validate",
+            [
+                (out / "validate.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+                (out / "validate.png", lambda tmp: fig.savefig(tmp, format="png", dpi=110)),
+            ],
+        )
     typer.echo(validation_summary(result, str(params)))
     typer.echo(f"wrote {out / 'validate.json'} and {out / 'validate.png'}")
     if not result.passes_seed:

@@ -22,11 +22,10 @@ from typing import Any
 from ewb_ident.data.readers import SUFFIXES
 from ewb_ident.data.trace import Trace, TraceError
 from ewb_ident.data.units import load_mapping
+from ewb_ident.data.validation import R_EFF_RANGE_M, r_eff_ok
 
 #: Manifest columns that are settings, not metadata.
 SETTING_COLUMNS = ("path", "map", "r_eff_m")
-#: Pad radii a trace may declare, m (as ``--r-eff`` checks them).
-R_EFF_RANGE_M = (0.02, 0.5)
 
 
 class CampaignError(ValueError):
@@ -91,7 +90,7 @@ def with_pad_radius(trace: Trace, r_eff_m: float | None) -> Trace:
 
 def _check_r_eff(value: float, where: str) -> float:
     lo, hi = R_EFF_RANGE_M
-    if not (math.isfinite(value) and lo <= value <= hi):
+    if not r_eff_ok(value):
         raise CampaignError(f"{where}: r_eff_m must be a pad radius within {lo} to {hi} m, "
                             f"got {value!r}")
     return float(value)

@@ -131,6 +131,13 @@ def atomic_write(writers: Sequence[tuple[Path, Writer]]) -> None:
             _PENDING.discard(tmp)
 
 
+def json_writer(document: Any) -> Writer:
+    """A writer of ``document`` as JSON (see :func:`json_text`; checked now, not when
+    it writes)."""
+    text = json_text(document)
+    return lambda tmp: tmp.write_text(text, encoding="utf-8")
+
+
 def write_text(path: str | os.PathLike[str], text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_write`)."""
     path = Path(path)
@@ -141,3 +148,51 @@ def write_text(path: str | os.PathLike[str], text: str) -> Path:
 def write_json(path: str | os.PathLike[str], document: Any) -> Path:
     """Write ``document`` as JSON to ``path`` atomically (see :func:`json_text`)."""
     return write_text(path, json_text(document))
+
+
+#: The list of files a command wrote into its output folder (``--out``), beside them, so
+#: that the next run into that folder replaces them as a set.
+RUN_MANIFEST = ".ewb-ident-run.json"
+
+
+def earlier_run(folder: str | os.PathLike[str]) -> list[str]:
+    """The files an earlier run wrote into ``folder`` (from its :data:`RUN_MANIFEST`)
+    that are still there; ``[]`` when there is none."""
+    folder = Path(folder)
+    try:
+        doc = json.loads((folder / RUN_MANIFEST).read_text(encoding="utf-8"))
+        names = doc["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    if not isinstance(names, list):
+        return []
+    safe = [n for n in names if isinstance(n, str) and n and Path(n).name == n]
+    return [n for n in safe if (folder / n).is_file()]
+
+
+def write_run(folder: str | os.PathLike[str], command: str, writers: Sequence[tuple[Path, Writer]]):
+    """Write one run's files into ``folder`` (created) as a set.
+
+    The files are written atomically together (:func:`atomic_write`) with a
+    :data:`RUN_MANIFEST` naming them; then the files an earlier run wrote there and
+    this one did not (e.g. an earlier diagnosis's ``finding_1_backlash.png`` beside a
+    new verdict ``none``) are removed. Files the tool did not write are left alone.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    earlier = earlier_run(folder)
+    names = [Path(target).name for target, _ in writers]
+    manifest = json_text({"command": command, "files": names})
+    atomic_write(
+        [(folder / RUN_MANIFEST, lambda tmp: tmp.write_text(manifest, encoding="utf-8"))]
+        + [(Path(t), w) for t, w in writers]
+    )
+    for name in earlier:
+        if name not in names:
+            (folder / name).unlink(missing_ok=True)
+    return [Path(target) for target, _ in writers]

@@ -18,7 +18,13 @@ import numpy as np
 
 from ewb_ident.data.trace import COLUMNS, MAX_GAP, NanPolicy, Trace, column_label, raise_trace_error
 from ewb_ident.data.units import convert_unit, load_mapping
-from ewb_ident.data.validation import NAN_HINT, first_nonfinite, parse_stages, validate
+from ewb_ident.data.validation import (
+    NAN_HINT,
+    UNITS_UNCHECKED,
+    first_nonfinite,
+    parse_stages,
+    validate,
+)
 
 #: Most samples a trace may have (10 minutes at 1 kHz), checked before parsing.
 MAX_SAMPLES = 600_000
@@ -117,15 +123,22 @@ def _count_lines(path: Path) -> int:
     return n
 
 
-def _read_csv(path: Path, label: str) -> _Raw:
-    lines = _count_lines(path)
-    if lines > MAX_SAMPLES + 2:
+def _check_length(rows: int, label: str) -> None:
+    """Refuse a table longer than :data:`MAX_SAMPLES`, from its size before it is read
+    (CSV lines, Parquet footer, MATLAB headers): one limit for every format."""
+    if rows > MAX_SAMPLES:
         raise_trace_error(
             label,
-            f"too long: about {lines - 1:,} rows; this tool reads at most {MAX_SAMPLES:,} "
+            f"too long: about {rows:,} rows; this tool reads at most {MAX_SAMPLES:,} "
             "samples (10 min at 1 kHz)",
             "split the recording into brake applications and fit them together",
         )
+
+
+def _read_csv(path: Path, label: str) -> _Raw:
+    lines = _count_lines(path)
+    if lines > MAX_SAMPLES + 2:
+        _check_length(lines - 1, label)
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
             text = handle.read()
@@ -177,6 +190,13 @@ def _read_parquet(path: Path, label: str) -> _Raw:
     import pyarrow.parquet as pq
 
     try:
+        rows = pq.ParquetFile(path).metadata.num_rows  # from the footer, nothing loaded
+    except Exception as err:  # pyarrow raises several types for damaged files
+        raise_trace_error(
+            label, f"not a readable Parquet file ({type(err).__name__}: {err})", "re-export"
+        )
+    _check_length(rows, label)
+    try:
         table = pq.read_table(path)
     except Exception as err:  # pyarrow raises several types for damaged files
         raise_trace_error(
@@ -195,6 +215,11 @@ def _read_parquet(path: Path, label: str) -> _Raw:
 def _read_mat(path: Path, label: str) -> _Raw:
     import scipy.io
 
+    try:  # the variables' shapes from the file's headers, nothing loaded
+        shapes = [shape for _, shape, _ in scipy.io.whosmat(path)]
+    except Exception:  # v7.3 and damaged files: loadmat below says which
+        shapes = []
+    _check_length(max((math.prod(shape) for shape in shapes), default=0), label)
     try:
         content = scipy.io.loadmat(path, simplify_cells=True)
     except NotImplementedError:
@@ -295,12 +320,32 @@ def _to_float(raw: Any, label: str, column: str) -> np.ndarray:
     return out
 
 
+class _DuplicateKey(ValueError):
+    """A JSON object with a key given twice (the key is the message)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def _read_sidecar(path: Path) -> dict[str, Any]:
     side = path.with_suffix(".json")
     if not side.is_file():
         return {}
     try:
-        data = json.loads(side.read_text(encoding="utf-8"))
+        data = json.loads(side.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
+    except _DuplicateKey as err:
+        raise_trace_error(
+            str(side),
+            "the key is given twice (JSON would keep the last one silently)",
+            "give each key once",
+            key=str(err),
+        )
     except RecursionError:
         raise_trace_error(
             str(side),
@@ -444,7 +489,9 @@ def read_trace(
         Float64 arrays in SI units (angle in degrees); ``name`` is the file stem,
         ``path`` the table path. Bookkeeping keys of the sidecar start with ``_``:
         ``_mapped`` (``{target: {"source", "unit"}}``), ``_ignored_columns``,
-        ``_unmatched_mapping`` and ``_filled``, each only when non-empty.
+        ``_unmatched_mapping``, ``_filled`` and ``_units_unchecked`` (read with
+        ``check_units=False``: the library's functions do not check the units again),
+        each only when non-empty.
 
     Raises
     ------
@@ -525,6 +572,7 @@ def read_trace(
         ("_unmatched_mapping", unmatched),
         ("_filled", filled),
         ("_csv_dialect", raw.dialect),
+        (UNITS_UNCHECKED, not check_units),
     ):
         if value:
             sidecar[key] = value

@@ -43,11 +43,12 @@ Checks, in this order
 3. Time: strictly increasing, uniform (every interval within 1 % of the median), a
    sample rate from 100 Hz to 1 kHz (1 % slack), at least 50 samples and 0.2 s.
 4. Sidecar: ``sample_rate_hz`` agrees with ``time_s`` within 1 %, ``r_eff_m`` a number
-   in (0.02, 0.5) m, ``disc_mode`` ``drag`` or ``coast``, ``coast`` with
+   from 0.02 to 0.5 m, ``disc_mode`` ``drag`` or ``coast``, ``coast`` with
    ``disc_inertia_kg_m2``.
-5. Units (``check_units=True``): values that look like millimetres, radians,
-   millivolts or milliamperes, or an implausible force. A column mapped with an
-   explicit unit is not checked.
+5. Units (``check_units=True``): sizes after the mapping's conversion that are not
+   physical for an EWB rig (stroke, pinion travel, gap lead, voltage, current, force,
+   the friction coefficient torque and force imply, disc speed), whatever unit the
+   mapping declared; the message names the likely unit.
 6. Stages: for the force, torque and chain stages a force that rises by at least
    200 N (the brake clamped); the columns each requested stage needs.
 """

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,12 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
-def write_trace(trace: Trace, path: str | os.PathLike[str]) -> Path:
+def write_trace(
+    trace: Trace,
+    path: str | os.PathLike[str],
+    *,
+    extra: Sequence[tuple[Path, Callable[[Path], None]]] = (),
+) -> Path:
     """Write a trace as CSV or Parquet, with its sidecar JSON beside it.
 
     Columns are ``time_s`` then the channels in :data:`COLUMNS` order, in SI units; CSV
@@ -43,6 +48,9 @@ def write_trace(trace: Trace, path: str | os.PathLike[str]) -> Path:
         The trace to write.
     path
         ``NAME.csv`` or ``NAME.parquet``.
+    extra
+        More files written in the same set (``simulate``'s truth): every file is
+        written, or none.
 
     Returns
     -------
@@ -89,6 +97,7 @@ def write_trace(trace: Trace, path: str | os.PathLike[str]) -> Path:
     if side_text is not None:
         text = side_text
         writers.append((side_path, lambda tmp: tmp.write_text(text, encoding="utf-8")))
+    writers += list(extra)
 
     try:
         atomic_write(writers)

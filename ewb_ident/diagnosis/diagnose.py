@@ -60,6 +60,7 @@ from typing import Any
 from ewb_ident.data.metrics import channel_metrics
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.validation import check_trace
 from ewb_ident.diagnosis.artefacts import find_artefacts
 from ewb_ident.diagnosis.corrected import (
     corrected_of,
@@ -157,6 +158,7 @@ def diagnose(
     and these channels used are loaded ahead in the background
     (:func:`~ewb_ident.model.programs.prefetching`).
     """
+    trace = check_trace(trace)
     # The channels name the work too: the first program (a fit's) takes them as data.
     work = f"diagnose {sorted(trace.channels)} {bic_threshold!r} {max_mechanisms!r} {catalog!r}"
     with prefetching(work):
@@ -253,8 +255,19 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
 def _catalog_pool(catalog: Sequence[str] | None) -> list[AbstractMechanism]:
     """The catalog's variants to try (all, or those of the ids named)."""
     pool = variants()
+    if isinstance(catalog, str):
+        raise TypeError(
+            f"catalog: give a sequence of catalog ids, e.g. {catalog.split(',')!r}, not the"
+            f" string {catalog!r}"
+        )
     if catalog is not None:
+        catalog = list(catalog)
         known = {m.id for m in pool}
+        if not catalog:
+            raise DiagnoseError(
+                "catalog (--catalog) names no id; name catalog ids, e.g. backlash,stiction,"
+                " or leave it out for the whole catalog"
+            )
         bad = sorted(set(catalog) - known)
         if bad:
             raise DiagnoseError(f"unknown catalog id(s) {bad}; the catalog is {sorted(known)}")

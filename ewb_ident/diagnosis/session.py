@@ -32,7 +32,7 @@ from ewb_ident.inference.augmented import (
     fit_mechanisms,
     make_data,
 )
-from ewb_ident.inference.least_squares import fit as fit_stage
+from ewb_ident.inference.least_squares import fit_checked_traces as fit_stage
 from ewb_ident.inference.problem import default_free
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad

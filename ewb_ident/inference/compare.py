@@ -24,10 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ewb_ident.data.stages import STAGE_PARAMS
+from ewb_ident.data.stages import STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
+from ewb_ident.inference.problem import FitError, default_free
 from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
@@ -168,6 +170,25 @@ def _torque(values: jnp.ndarray, names: Sequence[str], base: EWBParams) -> jnp.n
     return simulate_chain(p, V, dt, 0.0, 0.15)["torque_Nm"][-1]
 
 
+def _check_same_parameters(old, new, stage: str, free) -> None:
+    """Refuse OLD and NEW whose channels set different parameters (a NEW without
+    torque has no mu to compare): compare traces that record the same channels."""
+    if free is not None or stage not in STAGES:
+        return
+    names = {side: set(default_free(stage, trs)) for side, trs in (("OLD", old), ("NEW", new))}
+    for side, other, trs, others in (("NEW", "OLD", new, old), ("OLD", "NEW", old, new)):
+        lacking = sorted(names[other] - names[side])
+        if lacking:
+            missing = sorted({c for t in others for c in t.channels} - {
+                c for t in trs for c in t.channels})  # fmt: skip
+            labels = ", ".join(t.label for t in trs)
+            raise FitError(
+                f"{labels}: {side} records no {', '.join(missing) or 'channel'} where {other}"
+                f" does, so {', '.join(lacking)} cannot be compared; compare traces that"
+                " record the same channels (or drop the channel from the other side)"
+            )
+
+
 def _covariance(result: FitResult, names: Sequence[str]) -> np.ndarray:
     idx = [result.corr_names.index(n) for n in names]
     se = np.array([result.stderr[n] or 0.0 for n in names])
@@ -205,6 +226,8 @@ def compare(
         Practical tolerance per parameter, SI units (default: 1 % of the old value, at
         least 1 % of the parameter's scale for signed parameters near zero).
     """
+    old, new = check_traces(old, argument="old"), check_traces(new, argument="new")
+    _check_same_parameters(old, new, stage, free)
     fo = fit(list(old), stage=stage, free=free)
     fn = fit(list(new), stage=stage, free=free)
     names = [n for n in fo.free if n in MODEL_PARAMS and n not in fo.per_trace]

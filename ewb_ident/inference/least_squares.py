@@ -36,15 +36,18 @@ from ewb_ident.data.metrics import (
     noise_floor,
     noise_sigma,
 )
-from ewb_ident.data.stages import STAGE_PARAMS
+from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_OUTPUTS, STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combinations
 from ewb_ident.inference.initial import bell_start, motor_start
 from ewb_ident.inference.null_directions import hold_flank_exponent, hold_null_directions, hold_one
 from ewb_ident.inference.problem import (
+    FitError,
     Setup,
     Stage,
     build_setup,
+    check_parameter_options,
     evaluate,
     stage_inputs,
     usable,
@@ -102,6 +105,7 @@ def _start_values(
             except ValueError:
                 guess = {}
             start |= {n: v for n, v in guess.items() if n in bell}
+    _check_start(start, traces)
     if stage != "chain":
         return start
     fixed = base.as_dict() | {k: v for k, v in start.items() if "[" not in k}
@@ -112,13 +116,16 @@ def _start_values(
         names = [n for n in names if n in free]
         if not names or not all(t.has(c) for t in trs for c in stage_inputs(sub)):
             continue
-        res = fit(
+        res = _fit(
             trs,
-            stage=sub,
-            free=names,
-            per_trace=[n for n in per_trace if n in names],
-            fixed={k: v for k, v in fixed.items() if k not in names},
-            start={k: v for k, v in start.items() if k.split("[")[0] in names},
+            sub,
+            names,
+            [n for n in per_trace if n in names],
+            {k: v for k, v in fixed.items() if k not in names},
+            {k: v for k, v in start.items() if k.split("[")[0] in names},
+            EXPONENTIAL,
+            300,
+            1e-8,
         )
         if not np.isfinite(res.cost) or not all(
             usable(n, v) for p in res.params for n, v in p.as_dict().items() if n in names
@@ -129,6 +136,31 @@ def _start_values(
             for n in names:
                 start[f"{n}[{k}]" if n in per_trace else n] = vals[n]
     return start
+
+
+def _check_start(start: Mapping[str, float], traces: Sequence[Trace]) -> None:
+    """Refuse a start value the data put outside its parameter's bounds (a bell wider
+    than a centimetre, a negative resistance): the data, not the model, are then wrong,
+    and the message says which columns set that value."""
+    for key, value in start.items():
+        name = key.split("[")[0]
+        info = PARAMS.get(name)
+        if info is None or info.transform == "affine":
+            continue
+        if np.isfinite(value) and info.inside(value):
+            continue
+        stage = next(s for s, names in STAGE_PARAMS.items() if name in names)
+        present = [c for t in traces for c in (*STAGE_COLUMNS[stage], *STAGE_OUTPUTS[stage])
+                   if t.has(c)]  # fmt: skip
+        columns = " and ".join(dict.fromkeys(present))
+        labels = ", ".join(dict.fromkeys(t.label for t in traces))
+        raise FitError(
+            f"{labels}: the {stage} stage's data ({columns}) put the start value of {name} at"
+            f" {value:.4g} {info.unit}, outside its bounds ({info.lower:g} < {name} <"
+            f" {info.upper:g} {info.unit}): these columns do not look like an EWB rig's;"
+            " check their units (a mapping's unit, or one --no-unit-check let through) and"
+            " that time runs forward"
+        )
 
 
 def _motor_start(
@@ -235,10 +267,29 @@ def fit(
     Raises
     ------
     FitError
-        Unknown stage or parameter.
+        Unknown stage or parameter; start values the data put outside their bounds.
     TraceError
-        A trace lacks a column the stage needs.
+        A trace that fails :func:`~ewb_ident.data.validation.check_traces` (the
+        command line's checks), or lacks a column the stage needs.
+    TypeError
+        ``traces`` not traces (a path: read it first), ``free`` or ``per_trace`` a
+        string, ``fixed`` or ``start`` values that are not numbers.
     """
+    traces = check_traces(traces, stages=(stage,) if stage in STAGES else None)
+    free, per_trace, fixed, start = check_parameter_options(free, per_trace, fixed, start)
+    return _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol)
+
+
+@numerics
+def fit_checked_traces(trace: Trace, *, stage: Stage) -> FitResult:
+    """:func:`fit` of one stage, with its defaults, of a trace its caller has checked
+    (the diagnosis's baseline fits of every stage the trace's columns serve, whether or
+    not its force clamps)."""
+    return _fit((trace,), stage, None, None, None, None, EXPONENTIAL, 300, 1e-8)
+
+
+def _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol) -> FitResult:
+    """:func:`fit` of checked traces and options (the sub-fits of its start call this)."""
     setup = build_setup(traces, stage, free, per_trace, fixed, integrator)
     st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
     st = {k: v for k, v in st.items() if usable(k.split("[")[0], v)}
@@ -425,9 +476,7 @@ FLAT_BELL_B = 0.5
 MISFIT_RATIO = 3.0
 
 
-def _judge(
-    setup: Setup, params, trace_metrics, pooled
-) -> tuple[bool, list[str], list[str]]:
+def _judge(setup: Setup, params, trace_metrics, pooled) -> tuple[bool, list[str], list[str]]:
     """Judge the fit against what this tool states as acceptable (see ``FitResult``):
     whether it is, the notes on it, and those of the notes that name a channel missing
     its noise floor (a warning, not a rejection)."""

@@ -69,6 +69,21 @@ class SampleError(ValueError):
     """A posterior that cannot be set up as asked (the message says what to change)."""
 
 
+#: Coordinates a whole-chain posterior typically samples (the model's free parameters
+#: and a start angle), for memory estimates made before the fit says how many.
+TYPICAL_DIMENSION = 16
+
+
+def physical_memory() -> float:
+    """The machine's memory, bytes (16 GB where the system does not say)."""
+    import os
+
+    try:
+        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return 16e9
+
+
 @dataclass(frozen=True)
 class SamplerSettings:
     """How the ensembles run and what is summarised (the keyword arguments of
@@ -89,7 +104,18 @@ class SamplerSettings:
         """Most steps per ensemble: ``max_steps``, else ten times ``n_steps``."""
         return self.max_steps or 10 * self.n_steps
 
-    def check(self, names: Mapping[str, str] | None = None) -> None:
+    def memory_bytes(self, n_samples: int) -> float:
+        """An estimate of the memory the ensembles need on traces of ``n_samples``
+        samples in all: one batch of half the walkers evaluated at once (some 80 bytes
+        per walker and sample: residuals of every channel and their intermediates), and
+        the kept chains (every ensemble's walkers by the step limit, by
+        :data:`TYPICAL_DIMENSION` coordinates of 8 bytes)."""
+        walkers = self.n_walkers or 4 * TYPICAL_DIMENSION
+        batch = walkers / 2 * n_samples * 80.0
+        chains = self.n_ensembles * walkers * self.step_limit * TYPICAL_DIMENSION * 8.0
+        return batch + chains
+
+    def check(self, names: Mapping[str, str] | None = None, n_samples: int | None = None) -> None:
         """Raise :class:`SampleError` naming the first setting that cannot be used.
 
         Parameters
@@ -97,6 +123,9 @@ class SamplerSettings:
         names
             How the message spells each setting (e.g. ``{"min_ess": "--min-ess"}`` for
             the command line); by default the keyword argument's name.
+        n_samples
+            Samples of the traces in all, when known: the walkers, ensembles and steps
+            are then refused when :meth:`memory_bytes` exceeds half the machine's memory.
         """
         s = self
 
@@ -142,6 +171,16 @@ class SamplerSettings:
             )
         if not isinstance(s.seed, int) or s.seed < 0:
             raise SampleError(f"{name('seed')} must be a non-negative integer, got {s.seed!r}")
+        if n_samples is not None:
+            need, have = s.memory_bytes(n_samples), physical_memory()
+            if need > 0.5 * have:
+                walkers = s.n_walkers or f"about {4 * TYPICAL_DIMENSION} (the default)"
+                raise SampleError(
+                    f"{walkers} walkers in {s.n_ensembles} ensembles for up to {s.step_limit}"
+                    f" steps on {n_samples:,} samples need about {need / 1e9:.3g} GB, more than"
+                    f" half this machine's {have / 1e9:.3g} GB; use fewer"
+                    f" {name('n_walkers')}, {name('n_ensembles')} or {name('n_steps')}"
+                )
 
 
 # ----------------------------------------------------------------------------- model

@@ -74,12 +74,13 @@ import numpy as np
 
 from ewb_ident.data.stages import STAGE_COLUMNS, STAGE_PARAMS, STAGES, TEACHER_FORCED
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.chains import poor, restart_chain, run_chains
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.log_posterior import SampleError, SamplerSettings, build
 from ewb_ident.inference.posterior_result import PosteriorResult, assemble
 from ewb_ident.inference.priors import load_priors, mechanism_prior
-from ewb_ident.inference.problem import FitError, structural_notes
+from ewb_ident.inference.problem import FitError, check_parameter_options, structural_notes
 from ewb_ident.mechanisms.learned import LearnedTerm
 from ewb_ident.model.integrate import EXPONENTIAL, Integrator
 from ewb_ident.model.numerics import numerics
@@ -186,13 +187,14 @@ def sample(
     SampleError, PriorError, FitError, TraceError
         Settings, priors or traces that cannot be used.
     """
-    traces = (traces,) if isinstance(traces, Trace) else tuple(traces)
+    traces = check_traces(traces)
     if not traces:
         raise SampleError("no traces to sample")
+    free, per_trace, fixed, _ = check_parameter_options(free, per_trace, fixed, None)
     settings = SamplerSettings(
         noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
     )
-    settings.check()
+    settings.check(n_samples=sum(t.n for t in traces))
     stages = _stage_list(stage, traces)
     prior_table = load_priors(priors)
     return _sample(
@@ -312,7 +314,7 @@ def sample_corrected(
     settings = SamplerSettings(
         noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
     )
-    settings.check()
+    settings.check(n_samples=trace.n)
     prior_table = load_priors(priors)
     t_start = time.perf_counter()
     start = _corrected_start(trace, corrected)

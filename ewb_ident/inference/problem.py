@@ -339,6 +339,61 @@ def trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
     return on_device(d)
 
 
+def check_parameter_options(free, per_trace, fixed, start):
+    """The Python API's parameter options, checked for type where they enter (``fit``,
+    ``sample``): ``free`` and ``per_trace`` sequences of names, ``fixed`` and ``start``
+    dicts of names to numbers. Returns them as tuples and dicts (``None`` kept).
+
+    Raises
+    ------
+    TypeError
+        Naming the argument and what to give instead.
+    """
+    out: list = []
+    for arg, names in (("free", free), ("per_trace", per_trace)):
+        if names is None:
+            out.append(None)
+            continue
+        if isinstance(names, str):
+            split = [n.strip() for n in names.split(",") if n.strip()]
+            raise TypeError(
+                f"{arg}: give a sequence of parameter names, e.g. {arg}={split!r}, not the"
+                f" string {names!r}"
+            )
+        if isinstance(names, Mapping) or not isinstance(names, Iterable):
+            raise TypeError(
+                f"{arg}: give a sequence of parameter names, got a {type(names).__name__}"
+            )
+        names = tuple(names)
+        for n in names:
+            if not isinstance(n, str):
+                raise TypeError(f"{arg}: parameter names are strings, got {n!r}")
+        out.append(names)
+    for arg, values in (("fixed", fixed), ("start", start)):
+        if values is None:
+            out.append(None)
+            continue
+        if not isinstance(values, Mapping):
+            raise TypeError(
+                f"{arg}: give a dict of parameter names to values in SI units, e.g."
+                f" {arg}={{'R': 1.1}}, got a {type(values).__name__}"
+            )
+        for k, v in values.items():
+            if not isinstance(k, str):
+                raise TypeError(f"{arg}: parameter names are strings, got {k!r}")
+            try:
+                if isinstance(v, str | bytes | bool | np.bool_):
+                    raise TypeError
+                float(v)
+            except (TypeError, ValueError):
+                raise TypeError(
+                    f"{arg}: {k}={v!r} is not a number; give its value in SI units, e.g."
+                    f" {arg}={{{k!r}: {PARAMS[k].ref if k in PARAMS else 1.0}}}"
+                ) from None
+        out.append({k: float(v) for k, v in values.items()})
+    return tuple(out)
+
+
 def _check_fixed(fixed: Mapping[str, float], free: Iterable[str] | None) -> None:
     """Every fixed value names a model parameter, is finite and inside its bounds, and is
     not also asked to vary."""
@@ -501,9 +556,7 @@ def build_setup(traces, stage, free, per_trace, fixed, integrator) -> Setup:
     )
 
 
-def to_u(
-    problem: StageProblem, values: Mapping[str, float], base: EWBParams, tdata
-) -> np.ndarray:
+def to_u(problem: StageProblem, values: Mapping[str, float], base: EWBParams, tdata) -> np.ndarray:
     """The unconstrained vector for start ``values`` (SI; ``"name[k]"`` per trace)."""
     defaults = base.as_dict()
     u = [PARAMS[n].to_unconstrained(values.get(n, defaults.get(n))) for n in problem.shared]

@@ -28,9 +28,10 @@ import numpy as np
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import Trace, TraceError
+from ewb_ident.data.validation import check_trace
 from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.numerics import numerics
-from ewb_ident.model.params import MODEL_PARAMS, EWBParams
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 
 #: Residual RMS up to this many times the sensor noise counts as "at the noise floor".
 NOISE_RATIO = 1.5
@@ -64,19 +65,38 @@ def load_params(path: str | Path) -> EWBParams:
     Raises
     ------
     ValidateError
-        Unreadable file, or a parameter missing or not a finite number.
+        Unreadable file, or a parameter missing, not a finite number or outside its
+        bounds (:data:`~ewb_ident.model.params.PARAMS`): the one rule for every
+        parameters file (``validate --params``, ``simulate --params``).
     """
     path = Path(path)
     doc = load_document(path)
     params = doc.get("params")
     if not isinstance(params, dict):
         raise ValidateError(f"{path}: no 'params' object; give the fit.json that `fit` wrote")
+    return checked_params(params, str(path), "give a complete fit.json")
+
+
+def checked_params(params: Mapping[str, Any], where: str, fix: str) -> EWBParams:
+    """Model parameters from ``params``: each of :data:`MODEL_PARAMS` a finite number
+    inside its bounds (:data:`~ewb_ident.model.params.PARAMS`), the one rule for every
+    parameters file and the Python API's ``validate``.
+
+    Raises
+    ------
+    ValidateError
+        Naming ``where``, the parameter and its value.
+    """
     values = {}
     for name in MODEL_PARAMS:
         v = params.get(name)
         if not isinstance(v, int | float) or isinstance(v, bool) or not np.isfinite(v):
+            raise ValidateError(f"{where}: params.{name} is {v!r}, not a finite number; {fix}")
+        info = PARAMS[name]
+        if info.transform != "affine" and not info.inside(float(v)):
             raise ValidateError(
-                f"{path}: params.{name} is {v!r}, not a finite number; give a complete fit.json"
+                f"{where}: params.{name} is {v!r}, outside its bounds ({info.lower:g} < {name}"
+                f" < {info.upper:g} {info.unit}); give the parameters of a fit that converged"
             )
         values[name] = float(v)
     return EWBParams(**values)
@@ -153,8 +173,9 @@ def validate(
         mechanisms and learned terms of a ``fit --with``/``--with-diagnosis`` fit),
         simulated instead of the seed chain; ``None``: the seed chain.
     """
+    trace = check_trace(trace)
     if isinstance(params, Mapping):
-        params = EWBParams(**{n: float(params[n]) for n in MODEL_PARAMS})
+        params = checked_params(params, "params", "give every model parameter as a number")
     for col in ("voltage_V", "theta_deg"):
         if not trace.has(col):
             raise TraceError(

@@ -304,7 +304,9 @@ def write_diagnosis(
     figures: bool = True,
 ) -> list[Path]:
     """Write ``diagnosis.json`` and the figures into ``folder`` (created), atomically:
-    every file is complete under its name or absent. Returns the paths written.
+    every file is complete under its name or absent, and an earlier run's files there are
+    replaced as a set (:func:`~ewb_ident.data.outputs.write_run`). Returns the paths
+    written.
 
     Parameters
     ----------
@@ -317,14 +319,12 @@ def write_diagnosis(
     figures
         Whether to draw the figures too.
     """
-    from ewb_ident.data.outputs import atomic_write, json_text
+    from ewb_ident.data.outputs import json_text, write_run
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     text = json_text(result.to_json() | dict(extra or {}))
     writers = [(folder / "diagnosis.json", lambda tmp: tmp.write_text(text, encoding="utf-8"))]
     if figures:
         for name, data in figure_bytes(result).items():
             writers.append((folder / name, lambda tmp, d=data: tmp.write_bytes(d)))
-    atomic_write(writers)
-    return [path for path, _ in writers]
+    return write_run(folder, "diagnose", writers)

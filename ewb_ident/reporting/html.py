@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
-from ewb_ident.data.outputs import atomic_write
+from ewb_ident.data.outputs import write_run
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import param_info
@@ -653,12 +653,12 @@ def _diagnosis_section(doc: Mapping[str, Any], diagnosis: Any, figures: dict[str
 
 
 def write_report(out_dir: str | Path, page: str, figures: Mapping[str, bytes]) -> Path:
-    """Write ``index.html`` and the PNG figures into ``out_dir``, atomically per file."""
+    """Write ``index.html`` and the PNG figures into ``out_dir``, atomically, replacing an
+    earlier run's files there as a set (:func:`~ewb_ident.data.outputs.write_run`)."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     writers = [
         (out / name, lambda tmp, d=data: tmp.write_bytes(d)) for name, data in figures.items()
     ]
     writers.append((out / "index.html", lambda tmp: tmp.write_text(page, encoding="utf-8")))
-    atomic_write(writers)
+    write_run(out, "report", writers)
     return out / "index.html"
