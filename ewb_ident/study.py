@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from ewb_ident.data.metrics import Z90
 from ewb_ident.rig import VARIED_PARAMS
 
 
@@ -653,7 +654,7 @@ def summarise(study: Study, table) -> str:
         return "\n".join(lines) + "\n"
     varied = [k for k, v in study.grid.items() if len(v) > 1]
     keys = [*varied, "parameter"]
-    ok = ok.assign(covered=(ok["z"].abs() <= 1.645).where(ok["z"].notna()).astype(float))
+    ok = ok.assign(covered=(ok["z"].abs() <= Z90).where(ok["z"].notna()).astype(float))
     extra = {}
     if "reported_changed" in ok:
         ok = ok.assign(reported_changed=ok["reported_changed"].astype(float))

@@ -21,6 +21,17 @@ LAYERS = ["data", "model", "mechanisms", "inference", "diagnosis", "reporting", 
 #: had when this list was written: a listed module may shrink but not grow, and no new
 #: module may pass the limit.
 MAX_LINES = 600
+OVER = {
+    "ewb_ident.diagnosis.discovery": 1065,
+    "ewb_ident.diagnosis.diagnose": 827,
+    "ewb_ident.study": 717,
+    "ewb_ident.model.programs": 688,
+    "ewb_ident.reporting.html": 665,
+    "ewb_ident.rig.simulate": 664,
+    "ewb_ident.data.readers": 643,
+    "ewb_ident.data.validation": 642,
+    "ewb_ident.diagnosis.inputs": 619,
+}
 
 
 def _modules() -> list[tuple[str, Path]]:
@@ -191,3 +202,10 @@ def test_no_commit_hash_or_machine_diary_in_readme_package_or_tests():
             if commit.search(line) or machine.search(line):
                 bad.append(f"{path.relative_to(root)}:{k}: {line.strip()[:80]}")
     assert not bad, "\n".join(bad)
+
+
+def test_no_module_grows_past_the_size_the_layout_aims_for():
+    """A module over MAX_LINES lines is one of OVER and no longer than it was listed."""
+    for name, path in _modules():
+        n = len(path.read_text(encoding="utf-8").splitlines())
+        assert n <= OVER.get(name, MAX_LINES), f"{name}: {n} lines; split it"

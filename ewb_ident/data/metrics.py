@@ -32,6 +32,9 @@ from numpy.typing import ArrayLike
 SEED_PERCENT_ERROR: dict[str, float] = {"force_N": 3.3, "torque_Nm": 1.2}
 #: The seed paper's acceptance: force and torque percent error below 10 %.
 SEED_ACCEPTANCE_PCT = 10.0
+#: The standard normal quantile of a two-sided 90 % interval (estimate ± Z90 standard
+#: errors): every linearised 90 % interval the tool gives.
+Z90 = 1.6448536269514722
 
 
 def rmse(sim: ArrayLike, meas: ArrayLike) -> float:

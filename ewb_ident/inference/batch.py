@@ -16,14 +16,13 @@ from pathlib import Path
 from typing import Any
 
 from ewb_ident.data.campaign import Entry, file_hash, with_pad_radius
+from ewb_ident.data.metrics import Z90
 from ewb_ident.data.readers import read_trace
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.inference.compare import EFFECTIVE_WITHOUT_CURRENT
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS
 
-#: z of a two-sided 90 % normal interval (estimate +- Z90 standard errors).
-Z90 = 1.6448536269514722
 #: What the interval of a least-squares row comes from.
 FROM_STDERR = "stderr"
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.metrics import Z90
 from ewb_ident.data.stages import STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.validation import check_traces
@@ -360,7 +361,7 @@ def _change(name: str, old: float, new: float, var: float, tolerance) -> Paramet
     tol = practical_tolerance(name, old, tolerance)
     if se:
         p = _phi((d - tol) / se) + _phi((-d - tol) / se)
-        lo, hi = d - 1.645 * se, d + 1.645 * se
+        lo, hi = d - Z90 * se, d + Z90 * se
     else:
         p, lo, hi = None, None, None
     return ParameterChange(name, old, new, d, se, lo, hi, tol, p)

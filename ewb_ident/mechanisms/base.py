@@ -59,6 +59,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.metrics import Z90
 from ewb_ident.model.params import EWBParams, ParamInfo
 
 Hook = Literal[
@@ -362,7 +363,7 @@ def _plausible_range(info: ParamInfo) -> tuple[float, float]:
 
 
 #: Standard errors a resolved parameter lies from no effect (a 90 % interval).
-RESOLVED_Z = 1.645
+RESOLVED_Z = Z90
 
 
 def _null_value(info: ParamInfo) -> float:

@@ -416,7 +416,8 @@ def _summary(fit: FitResult, posterior: Any, ddoc: Any, cpost: Any) -> str:
 def _key_params(values: Mapping[str, float], stderr: Mapping[str, Any], post: Mapping) -> str:
     """``a = 0.63 mm [0.62 … 0.65]`` for a, b, c, mu: the posterior's HDI when sampled,
     else the linearised least-squares interval; no interval for a held parameter."""
-    z = 1.6448536269514722
+    from ewb_ident.data.metrics import Z90 as z
+
     out = []
     for n in ("a", "b", "c", "mu"):
         if n not in values:
