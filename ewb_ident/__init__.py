@@ -94,6 +94,7 @@ _PUBLIC = {
     "simulate_motor": "model.integrate",
     "Trace": "data.trace",
     "TraceError": "data.trace",
+    "InputError": "data.trace",
     "read_trace": "data.readers",
     "write_trace": "data.writers",
     "fit_corrected": "diagnosis.corrected",
@@ -109,6 +110,7 @@ __all__ = sorted(_PUBLIC)
 if TYPE_CHECKING:
     from ewb_ident.data.metrics import channel_metrics as channel_metrics
     from ewb_ident.data.readers import read_trace as read_trace
+    from ewb_ident.data.trace import InputError as InputError
     from ewb_ident.data.trace import Trace as Trace
     from ewb_ident.data.trace import TraceError as TraceError
     from ewb_ident.data.writers import write_trace as write_trace

@@ -40,10 +40,11 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.metrics import Z90
+from ewb_ident.data.trace import InputError
 from ewb_ident.rig import VARIED_PARAMS
 
 
-class StudyError(ValueError):
+class StudyError(InputError):
     """A study definition that cannot be run as written."""
 
 

@@ -24,7 +24,7 @@ MAX_LINES = 600
 OVER = {
     "ewb_ident.diagnosis.discovery": 1065,
     "ewb_ident.diagnosis.diagnose": 827,
-    "ewb_ident.study": 717,
+    "ewb_ident.study": 718,
     "ewb_ident.model.programs": 688,
     "ewb_ident.reporting.html": 665,
     "ewb_ident.rig.simulate": 664,

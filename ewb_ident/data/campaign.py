@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ewb_ident.data.readers import SUFFIXES
-from ewb_ident.data.trace import Trace, TraceError
+from ewb_ident.data.trace import InputError, Trace, TraceError
 from ewb_ident.data.units import load_mapping
 from ewb_ident.data.validation import R_EFF_RANGE_M, r_eff_ok
 
@@ -28,7 +28,7 @@ from ewb_ident.data.validation import R_EFF_RANGE_M, r_eff_ok
 SETTING_COLUMNS = ("path", "map", "r_eff_m")
 
 
-class CampaignError(ValueError):
+class CampaignError(InputError):
     """A campaign that cannot be run as named (the message says where and what to do)."""
 
 

@@ -89,7 +89,14 @@ MAX_GAP = 5
 NanPolicy = Literal["raise", "interpolate"]
 
 
-class TraceError(ValueError):
+class InputError(ValueError):
+    """Input the caller can fix: a trace, a mapping, an option, a parameters or study
+    file, a prior. The message is one line naming what and where and what to do (the
+    command line prints it and exits with code 2). Every such error of the package
+    derives from it, so ``except InputError`` catches them all."""
+
+
+class TraceError(InputError):
     """A trace file that cannot be used as it is.
 
     The message is one line naming the file, the column and the row where the

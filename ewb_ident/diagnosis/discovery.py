@@ -51,6 +51,7 @@ import numpy as np
 from scipy.signal import fftconvolve
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
+from ewb_ident.data.trace import InputError
 from ewb_ident.diagnosis.heldout import (
     HELDOUT_BIC,
     RIDGES,
@@ -774,7 +775,7 @@ def basis_matrix(disc: Discovery) -> np.ndarray:
     return stacked([c.values for c in disc.columns], n)
 
 
-class TermError(ValueError):
+class TermError(InputError):
     """A learned term that cannot be read or rebuilt on a trace."""
 
 

@@ -20,7 +20,7 @@ from ewb_ident.data.stages import (
     STAGE_OUTPUTS,
     TEACHER_FORCED,
 )
-from ewb_ident.data.trace import Trace
+from ewb_ident.data.trace import InputError, Trace
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
@@ -69,7 +69,7 @@ SEPARATE: defaultdict[frozenset[str], str] = defaultdict(
 MOTOR_PARAMS: tuple[str, ...] = tuple(n for n in STAGE["motor"].params if n != "theta0_deg")
 
 
-class DiagnoseError(ValueError):
+class DiagnoseError(InputError):
     """A trace that cannot be diagnosed (the message says why and what to do)."""
 
 

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.trace import InputError
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import Prior, param_info
 from ewb_ident.inference.problem import StageProblem
@@ -65,7 +66,7 @@ HINTS: dict[str, str] = {
 }
 
 
-class SampleError(ValueError):
+class SampleError(InputError):
     """A posterior that cannot be set up as asked (the message says what to change)."""
 
 

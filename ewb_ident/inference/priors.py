@@ -22,6 +22,7 @@ from typing import Any, Literal
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.trace import InputError
 from ewb_ident.model.params import PARAMS, ParamInfo
 
 Dist = Literal["normal", "lognormal", "beta", "uniform", "loguniform", "flat"]
@@ -47,7 +48,7 @@ _SUPPORT: dict[str, tuple[float, float]] = {
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
-class PriorError(ValueError):
+class PriorError(InputError):
     """A prior file or table that cannot be used (the message names file and key)."""
 
 

@@ -17,7 +17,7 @@ from ewb_ident.data.metrics import (
     noise_sigma,
 )
 from ewb_ident.data.stages import CHANNELS, STAGE_COLUMNS, STAGE_PARAMS, STAGES
-from ewb_ident.data.trace import Trace, TraceError
+from ewb_ident.data.trace import InputError, Trace, TraceError
 from ewb_ident.inference.initial import motor_lag
 from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
@@ -32,7 +32,7 @@ Stage = Literal["motor", "gap", "force", "torque", "chain"]
 DEFAULT_PER_TRACE: tuple[str, ...] = ("theta0_deg",)
 
 
-class FitError(ValueError):
+class FitError(InputError):
     """A fit that cannot be set up as asked (unknown stage or parameter, no data)."""
 
 

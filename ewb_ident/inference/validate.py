@@ -27,7 +27,7 @@ import numpy as np
 
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_noise
 from ewb_ident.data.stages import CHANNELS
-from ewb_ident.data.trace import Trace, TraceError
+from ewb_ident.data.trace import InputError, Trace, TraceError
 from ewb_ident.data.validation import check_trace
 from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.numerics import numerics
@@ -37,7 +37,7 @@ from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 NOISE_RATIO = 1.5
 
 
-class ValidateError(ValueError):
+class ValidateError(InputError):
     """Parameters that cannot be validated (unreadable or incomplete ``fit.json``)."""
 
 

@@ -10,6 +10,8 @@ from typing import Literal
 
 import numpy as np
 
+from ewb_ident.data.trace import InputError
+
 DEG = 180.0 / math.pi  # degrees per radian
 #: Disc speed below which the sliding friction fades out, rad/s.
 DISC_SLIP_RAD_S = 0.1
@@ -26,7 +28,7 @@ SENSOR_CHANNELS: tuple[str, ...] = (
 )
 
 
-class RigError(ValueError):
+class RigError(InputError):
     """Settings of the synthetic rig that cannot be simulated (the message says why)."""
 
 
