@@ -19,8 +19,10 @@ def study(
         typer.Option(help="Dask scheduler address (tcp://host:8786); default: in-process."),
     ] = None,
 ) -> None:
-    """Run a batch study: writes OUT/results.csv (one row per case and parameter) and
-    OUT/report.md. Exits 3 when any case failed (its error is in results.csv)."""
+    """Run a study of synthetic rig cases (your own recordings: ewb-ident batch).
+
+    Writes OUT/results.csv (one row per case and parameter) and OUT/report.md. Exits 3
+    when any case failed (its error is in results.csv)."""
     check_out(out)
     import re
 
