@@ -457,13 +457,16 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
     r_perp = r - Uj @ (Uj.T @ r)
 
     def gains(periods) -> np.ndarray:
-        U = np.stack([c.values for P in periods for c in periodic(s, P, signals)], axis=1)
-        G = G_of(U)
-        G = G - Uj @ (Uj.T @ G)
         out = []
-        for k in range(len(periods)):
-            Q, _ = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
-            out.append(float(np.sum((Q.T @ r_perp) ** 2)))
+        for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
+            chunk = periods[i : i + 16]
+            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
+            G = G_of(U)
+            G = G - Uj @ (Uj.T @ G)
+            for k in range(len(chunk)):
+                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
+                Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
+                out.append(float(np.sum((Q.T @ r_perp) ** 2)))
         return np.asarray(out)
 
     # Frequencies (cycles per degree): spaced by half a cycle over the span, or
