@@ -382,3 +382,22 @@ def test_a_learned_coefficients_posterior_does_not_depend_on_its_size():
     (name,) = [n for n in post.names if n.startswith("learned[")]
     st = post.stats[name]
     assert st["hdi_low"] <= 1.0 <= st["hdi_high"] and st["hdi_high"] - st["hdi_low"] < 0.2
+
+
+def test_a_place_whose_fit_cannot_be_linearised_learns_no_term(monkeypatch):
+    """A fit whose Jacobian is not finite there (a switching mechanism at a corner) is no
+    place to learn a term: discovery passes it over instead of failing the diagnosis."""
+    from ewb_ident.diagnosis.session import Session
+    from ewb_ident.inference import augmented
+
+    ses = Session(damped_force_trace())
+    ses.baseline()
+    real = augmented.residuals_and_jacobian
+
+    def not_finite(*args, **kwargs):
+        r, J, rest = real(*args, **kwargs)
+        return r, np.asarray(J) * np.nan, rest
+
+    monkeypatch.setattr(augmented, "residuals_and_jacobian", not_finite)
+    assert disc_mod._linearised(ses, ses.base_fits["force"], "force.output")[4] is None
+    assert disc_mod.discover(ses, "force", lambda stages: ses.fit(stages, ())) is None

@@ -373,7 +373,9 @@ def _linearised(ses, fit, place):
     chans = fit.problem.channels
     n_pad = r.size // len(chans)
     effect = place_effect(place, fit.values, ses.trace)
-    if not set(effect) & set(chans):
+    if not set(effect) & set(chans) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        # No channel of the fit shows the place, or the fit cannot be linearised there (a
+        # switching mechanism's Jacobian that is not finite): no term is learned at it.
         return r, J, chans, {}, None
     weights = {ch: np.asarray(ses.data["w"][ch], float)[:n_pad] for ch in chans}
 
