@@ -46,6 +46,29 @@ def test_torque_at_the_operating_point_and_the_json(planted):
     assert "Brake torque at the seed's operating point" in doc["summary"]
 
 
+def test_the_summary_reads_like_a_result(planted):
+    """A headline names what changed, strongest evidence first; a and c in mm; one kind
+    of interval, said once; no line calls a change both unclear and probable; each side
+    of compare.json lists its own traces and the method used."""
+    _, _, result = planted
+    text = result.summary()
+    head = text.splitlines()[0]
+    assert head.startswith("Changed: ")
+    parts = head.removeprefix("Changed: ").split(". ")[0].rstrip(".").split("; P = ")
+    names = [parts[0].split(" ")[0]] + [p.split("; ", 1)[1].split(" ")[0] for p in parts[1:-1]]
+    assert {"c", "R"} <= set(names), head
+    assert " mm " in head.split("c ", 1)[1].split(";")[0]  # c in mm
+    ps = [float(p.split(")")[0]) for p in parts[1:]]
+    assert ps == sorted(ps, reverse=True)  # strongest evidence first
+    assert text.count("Every interval is 90 %") == 1 and "no clear change" not in text
+    for line in text.splitlines()[2:]:
+        if line.startswith("  unchanged"):
+            assert float(line.rsplit("P = ", 1)[1].rstrip(")")) < 0.5, line
+    doc = result.to_json()
+    assert doc["old"]["traces"] == ["old"] and doc["new"]["traces"] == ["new"]
+    assert doc["method"].startswith("a joint least-squares fit")
+
+
 @pytest.mark.slow
 def test_intervals_of_a_change_hold_the_true_change():
     """Issue 11.4: the 90 % intervals of the change of b and c held the truth far less

@@ -15,6 +15,10 @@ import numpy as np
 
 from ewb_ident.data.trace import COLUMNS, raise_trace_error
 
+#: Units shown to a researcher instead of the SI ones (reports, summaries, tables):
+#: SI unit -> (shown unit, factor).
+SHOWN_UNITS = {"m": ("mm", 1e3), "m/deg": ("µm/deg", 1e6), "m/deg^2": ("nm/deg²", 1e9)}
+
 #: Units a mapping may declare: name -> (quantity, size of the unit in SI units).
 #: Angles are measured in radians here; ``theta_deg`` is stored in degrees.
 UNITS: dict[str, tuple[str, float]] = {

@@ -27,6 +27,7 @@ import numpy as np
 from ewb_ident.data.metrics import Z90
 from ewb_ident.data.stages import STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.units import SHOWN_UNITS
 from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
@@ -91,27 +92,35 @@ class Comparison:
     torque_old: float
     torque_new: float
     torque_delta_stderr: float | None
+    #: Each side's own traces (a joint fit holds both).
+    old_traces: tuple[str, ...] = ()
+    new_traces: tuple[str, ...] = ()
+    #: How the changes were estimated, in words.
+    method: str = ""
 
     def summary(self) -> str:
-        """Plain-language summary: what changed, by how much, and what it means."""
-        lines = []
-        moved = [c for c in self.changes if c.changed]
-        if not moved:
-            lines.append("No parameter changed beyond its tolerance with probability > 0.95.")
-        for c in self.changes:
-            rel = f" ({100 * c.delta / c.old:+.1f} %)" if c.old else ""
-            unit = PARAMS[c.name].unit if c.name in PARAMS else MOTOR_COMBINATIONS[c.name]
-            word = "changed" if c.changed else "no clear change"
-            interval = (
-                f"90 % interval [{c.low90:+.4g}, {c.high90:+.4g}]"
-                if c.low90 is not None
-                else "no interval (no standard error)"
+        """Plain-language summary: a headline of what changed (strongest evidence first),
+        then every parameter in the units a researcher reads (mm for a and c), each with
+        its 90 % interval and the probability that it changed beyond its tolerance."""
+        order = sorted(self.changes, key=lambda c: -(c.p_changed or 0.0))
+        moved = [c for c in order if c.changed]
+        if moved:
+            head = "Changed: " + "; ".join(_change_words(c, interval=True) for c in moved) + "."
+        else:
+            head = "No parameter changed beyond its tolerance (P > 0.95 for none)."
+        undecided = [c.name for c in order if not c.changed and (c.p_changed or 0.0) >= 0.5]
+        if undecided:
+            head += (
+                f" Undecided (more likely changed than not, but below 0.95): "
+                f"{', '.join(undecided)}."
             )
-            p = "-" if c.p_changed is None else f"{c.p_changed:.3f}"
-            lines.append(
-                f"{c.name}: {word}, {c.delta:+.4g} {unit}{rel}, {interval}; "
-                f"P(|change| > {c.tolerance:.3g}) = {p}"
-            )
+        lines = [
+            head,
+            "Every interval is 90 %; P is the probability that the change exceeds the "
+            "tolerance (1 % of the old value unless given).",
+        ]
+        for c in order:
+            lines.append(f"  {_verdict(c):<9} {_change_words(c, interval=True)}")
         if any(c.name in MOTOR_COMBINATIONS for c in self.changes):
             lines.append(
                 "Without current_A the motor's L, kb and M are effective values (R and v "
@@ -119,10 +128,10 @@ class Comparison:
                 "(no-load speed per volt) and the lag."
             )
         dT = self.torque_new - self.torque_old
-        se = f" +- {self.torque_delta_stderr:.3g}" if self.torque_delta_stderr else ""
+        se = f" ± {self.torque_delta_stderr:.3g}" if self.torque_delta_stderr else ""
         lines.append(
             f"Brake torque at the seed's operating point (4 V apply, 0.25 s, holding): "
-            f"{self.torque_old:.1f} -> {self.torque_new:.1f} N*m ({dT:+.1f}{se} N*m, "
+            f"{self.torque_old:.1f} → {self.torque_new:.1f} N·m ({dT:+.1f}{se} N·m, "
             f"{100 * dT / self.torque_old:+.1f} %)."
         )
         return "\n".join(lines)
@@ -151,14 +160,51 @@ class Comparison:
                 "delta_stderr_Nm": self.torque_delta_stderr,
                 "operating_point": OPERATING_POINT,
             },
-            "old": {"traces": list(self.old.trace_names), "converged": self.old.converged},
-            "new": {"traces": list(self.new.trace_names), "converged": self.new.converged},
+            "old": {
+                "traces": list(self.old_traces or self.old.trace_names),
+                "converged": self.old.converged,
+            },
+            "new": {
+                "traces": list(self.new_traces or self.new.trace_names),
+                "converged": self.new.converged,
+            },
             "summary": self.summary(),
-            "method": (
-                "separate least-squares fits of OLD and NEW; delta +- standard error from "
-                "both covariances; P(changed) under the Gaussian approximation"
-            ),
+            "method": self.method or SEPARATE,
         }
+
+
+SEPARATE = (
+    "separate least-squares fits of OLD and NEW; delta ± standard error from both "
+    "covariances; P(changed) under the Gaussian approximation"
+)
+JOINT = (
+    "a joint least-squares fit of OLD and NEW: the parameters whose separate fits "
+    "differ (and the bell's a, b, c, F_rt as one block) per trace, the rest shared; delta "
+    "± standard error from the joint covariance; P(changed) under the Gaussian "
+    "approximation"
+)
+
+
+def _verdict(c: ParameterChange) -> str:
+    """``changed`` (P > 0.95), ``undecided`` (0.5 <= P <= 0.95) or ``unchanged``."""
+    if c.changed:
+        return "changed"
+    return "undecided" if (c.p_changed or 0.0) >= 0.5 else "unchanged"
+
+
+def _change_words(c: ParameterChange, interval: bool) -> str:
+    """A change in the units a researcher reads: old → new, the change and its 90 %
+    interval, relative change, P(beyond the tolerance)."""
+    unit = PARAMS[c.name].unit if c.name in PARAMS else MOTOR_COMBINATIONS[c.name]
+    shown, k = SHOWN_UNITS.get(unit, (unit, 1.0))
+    shown = "" if shown == "1" else f" {shown}"
+    text = f"{c.name} {c.old * k:.4g} → {c.new * k:.4g}{shown} ({c.delta * k:+.3g}{shown}"
+    if interval and c.low90 is not None:
+        text += f" [{c.low90 * k:+.3g}, {c.high90 * k:+.3g}]"
+    if c.old:
+        text += f", {100 * c.delta / c.old:+.1f} %"
+    p = "–" if c.p_changed is None else f"{c.p_changed:.2f}"
+    return text + f"; P = {p})"
 
 
 def _torque(values: jnp.ndarray, names: Sequence[str], base: EWBParams) -> jnp.ndarray:
@@ -243,7 +289,9 @@ def compare(
     motor = _motor_changes(fo, fn, tolerance) if not _has_current([*old, *new]) else None
     if len(old) != 1 or len(new) != 1:
         changes = _with_motor(screened, motor)
-        return Comparison(fo, fn, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+        return Comparison(
+            fo, fn, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None, method=SEPARATE
+        )
 
     # Joint refit: screened parameters per trace, the rest shared. The bell's a, b, c and
     # F_rt trade off strongly (when the piston never passes c, almost exactly), so they
@@ -263,7 +311,9 @@ def compare(
     joint = fit([old[0], new[0]], stage=stage, free=fo.free, per_trace=[*moving, "theta0_deg"])
     if not joint.converged:
         changes = _with_motor(screened, motor)
-        return Comparison(fo, fn, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+        return Comparison(
+            fo, fn, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None, method=SEPARATE
+        )
     jn = list(joint.corr_names)
     se = np.array([joint.stderr[n] or 0.0 for n in jn])
     cov = joint.corr * np.outer(se, se)
@@ -289,7 +339,17 @@ def compare(
     )
     var_T = float(np.asarray(dT) @ cov_u @ np.asarray(dT))
     changes = _with_motor(refined, motor)
-    return Comparison(joint, joint, changes, T_o, T_n, math.sqrt(max(var_T, 0)) or None)
+    return Comparison(
+        joint,
+        joint,
+        changes,
+        T_o,
+        T_n,
+        math.sqrt(max(var_T, 0)) or None,
+        old_traces=(old[0].name,),
+        new_traces=(new[0].name,),
+        method=JOINT,
+    )
 
 
 def _consistent_with_none(c: ParameterChange) -> bool:

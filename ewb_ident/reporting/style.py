@@ -9,6 +9,8 @@ import io
 import numpy as np
 from matplotlib.figure import Figure
 
+from ewb_ident.data.units import SHOWN_UNITS  # noqa: F401 (re-exported)
+
 #: One phase palette for every figure, the report's and the diagnosis's.
 PHASE_COLOURS = {
     "gapping": "#f0f0f0",
@@ -27,8 +29,6 @@ CHANNEL_LABELS = {
     "disc_speed_rad_s": "disc speed (rad/s)",
 }
 SCALE = {"x_m": 1e3}  # shown in mm
-#: Units shown on the page instead of the SI ones: SI unit -> (shown unit, factor).
-SHOWN_UNITS = {"m": ("mm", 1e3), "m/deg": ("µm/deg", 1e6), "m/deg^2": ("nm/deg²", 1e9)}
 
 
 def subplots(*args, figsize=None, layout=None, **kwargs):
