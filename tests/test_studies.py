@@ -100,3 +100,29 @@ def test_every_drawn_current_limit_acts():
     for i in cases:
         *_, visibility = da.make_case(i, ("current_limit",), seed=20261218, widen=True)
         assert visibility > 5.0, (i, visibility)
+
+
+def test_an_unreachable_scheduler_is_one_line_exit_2_and_writes_nothing(tmp_path):
+    """No scheduler at the address: refused before anything is written, in one line
+    naming the address."""
+    from typer.testing import CliRunner
+
+    from ewb_ident.cli import app
+
+    (tmp_path / "mini.toml").write_text(MINI)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        app,
+        [
+            "study",
+            str(tmp_path / "mini.toml"),
+            "--out",
+            str(out),
+            "--scheduler",
+            "tcp://127.0.0.1:1",
+        ],
+    )
+    assert res.exit_code == 2
+    assert "no Dask scheduler answered" in res.output and "tcp://127.0.0.1:1" in res.output
+    assert len(res.output.strip().splitlines()) == 1
+    assert not out.exists()
