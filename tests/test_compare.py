@@ -144,3 +144,14 @@ def test_a_small_but_real_mu_change_is_not_shared_into_the_bell():
     assert rows["F_rt"]["true_delta"] == 0.0
     for p in ("F_rt", "a", "b", "c", "mu"):
         assert rows[p]["held"], (p, rows[p])
+
+
+def test_compare_says_each_step_as_it_starts():
+    """The command line's progress lines come from the library's steps."""
+    base = rig.RigParams()
+    old_t = [rig.simulate_rig(base, sample_rate_hz=100.0, seed=1, name="old")[0]]
+    new_t = [rig.simulate_rig(base, sample_rate_hz=100.0, seed=2, name="new")[0]]
+    steps: list[str] = []
+    compare(old_t, new_t, stage="torque", progress=steps.append)
+    assert steps[:2] == ["fitting OLD", "fitting NEW"]
+    assert all(s.startswith("fitting") for s in steps)

@@ -14,6 +14,7 @@ from ewb_ident.cli.options import (
     NoUnitCheck,
     OutDir,
     REff,
+    Status,
     app,
     bad_input_errors,
     check_out,
@@ -44,7 +45,8 @@ def compare(
     try:
         trs_old = read_traces(old, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
         trs_new = read_traces(new, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
-        result = run_compare(trs_old, trs_new, stage=stage)
+        with Status("comparing") as say:
+            result = run_compare(trs_old, trs_new, stage=stage, progress=say)
     except bad_input_errors() as err:
         fail(str(err))
     with writing(out):

@@ -16,7 +16,7 @@ new parameters, and its change is given with an uncertainty propagated from both
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -250,6 +250,7 @@ def compare(
     stage: str = "chain",
     free: Sequence[str] | None = None,
     tolerance: Mapping[str, float] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> Comparison:
     """Fit OLD and NEW traces and report which parameters changed.
 
@@ -272,10 +273,15 @@ def compare(
     tolerance
         Practical tolerance per parameter, SI units (default: 1 % of the old value, at
         least 1 % of the parameter's scale for signed parameters near zero).
+    progress
+        Told, in words, each step as it starts (the command line's progress lines).
     """
+    say = progress or (lambda text: None)
     old, new = check_traces(old, argument="old"), check_traces(new, argument="new")
     _check_same_parameters(old, new, stage, free)
+    say("fitting OLD")
     fo = fit(list(old), stage=stage, free=free)
+    say("fitting NEW")
     fn = fit(list(new), stage=stage, free=free)
     names = [n for n in fo.free if n in MODEL_PARAMS and n not in fo.per_trace]
     cov_o, cov_n = _covariance(fo, names), _covariance(fn, names)
@@ -308,6 +314,7 @@ def compare(
     if motor is not None and not all(_consistent_with_none(c) for c in motor):
         maybe |= {n for n in EFFECTIVE_WITHOUT_CURRENT if n in names}
     moving = [c.name for c in screened if c.name in maybe or c.name in STAGE_PARAMS["force"]]
+    say("fitting OLD and NEW jointly (the parameters that may have changed per trace)")
     joint = fit([old[0], new[0]], stage=stage, free=fo.free, per_trace=[*moving, "theta0_deg"])
     if not joint.converged:
         changes = _with_motor(screened, motor)
