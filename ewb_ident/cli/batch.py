@@ -20,6 +20,7 @@ from ewb_ident.cli.options import (
     check_out,
     command_line,
     fail,
+    writing,
 )
 
 
@@ -183,7 +184,7 @@ def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, A
 
 
 def _write(out: Path, campaign, records, group_by, provenance) -> None:
-    from ewb_ident.data.outputs import atomic_write, json_text, null_nonfinite
+    from ewb_ident.data.outputs import json_writer, null_nonfinite, write_run
     from ewb_ident.reporting.campaign import (
         campaign_page,
         changes_table,
@@ -213,23 +214,22 @@ def _write(out: Path, campaign, records, group_by, provenance) -> None:
         ]
     if png is not None:
         writers.append((out / "parameters.png", lambda tmp: tmp.write_bytes(png)))
-    text = json_text(null_nonfinite(provenance))
     writers += [
-        (out / "batch.json", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+        (out / "batch.json", json_writer(null_nonfinite(provenance))),
         (out / "index.html", lambda tmp: tmp.write_text(page, encoding="utf-8")),
     ]
-    atomic_write(writers)
-    if changes is None:  # an earlier run's changes would contradict this one's settings
-        for suffix in (".csv", ".parquet"):
-            (out / f"changes{suffix}").unlink(missing_ok=True)
+    # One run's files as a set: an earlier run's changes.* or parameters.png that this
+    # run did not write (no --group-by, no plotted parameter) would contradict it.
+    with writing(out):
+        write_run(out, "batch", writers)
     _echo_tables(population, changes)
 
 
 def _echo_tables(population, changes) -> None:
-    from ewb_ident.reporting.style import SHOWN_UNITS
+    from ewb_ident.data.units import shown_unit
 
     def shown(unit: str, v) -> str:
-        u, k = SHOWN_UNITS.get(unit, (unit, 1.0))
+        _, k = shown_unit(unit)
         return "–" if v is None or v != v else f"{v * k:.4g}"
 
     pop = population[population["group"] == "all"] if not population.empty else population
