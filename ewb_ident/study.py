@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.metrics import Z90
-from ewb_ident.data.trace import InputError
+from ewb_ident.data.trace import InputError, error_line
 from ewb_ident.rig import VARIED_PARAMS
 
 
@@ -534,10 +534,9 @@ def connect(
         _probe(address, connect_timeout)
         client = Client(address, timeout=f"{connect_timeout}s")
     except Exception as err:  # OSError, TimeoutError, ValueError of a malformed address
-        text = " ".join(str(err).split()) or type(err).__name__
         raise ClusterError(
-            f"--scheduler {address}: no Dask scheduler answered ({text}; waited at most "
-            f"{connect_timeout:g} s); start one (`dask scheduler`) or check the address"
+            f"--scheduler {address}: no Dask scheduler answered ({error_line(err)}; waited at "
+            f"most {connect_timeout:g} s); start one (`dask scheduler`) or check the address"
         ) from None
     if not client.scheduler_info().get("workers"):
         if say is not None:

@@ -26,7 +26,7 @@ OVER = {
     "ewb_ident.diagnosis.diagnose": 827,
     "ewb_ident.study": 718,
     "ewb_ident.model.programs": 688,
-    "ewb_ident.reporting.html": 665,
+    "ewb_ident.reporting.html": 666,
     "ewb_ident.rig.simulate": 664,
     "ewb_ident.data.readers": 643,
     "ewb_ident.data.validation": 642,

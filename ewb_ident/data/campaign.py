@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ewb_ident.data.readers import SUFFIXES
-from ewb_ident.data.trace import InputError, Trace, TraceError
+from ewb_ident.data.trace import InputError, Trace, TraceError, error_line
 from ewb_ident.data.units import load_mapping
 from ewb_ident.data.validation import R_EFF_RANGE_M, r_eff_ok
 
@@ -158,9 +158,8 @@ def read_manifest(
     except CampaignError:
         raise
     except Exception as err:  # pandas' and pyarrow's parser errors have no common base
-        text = " ".join(str(err).split()) or type(err).__name__
-        raise CampaignError(f"{path}: cannot read the manifest ({text}); give a CSV or Parquet "
-                            "table with a 'path' column") from None
+        raise CampaignError(f"{path}: cannot read the manifest ({error_line(err)}); give a CSV or "
+                            "Parquet table with a 'path' column") from None
     table.columns = [str(c).strip() for c in table.columns]
     if "path" not in table.columns:
         hint = ("it looks like a trace, not a manifest: give its folder or a glob, or list it "

@@ -203,6 +203,12 @@ def _one_line(text: str) -> str:
     return re.sub(r"\s*[\r\n]+\s*", " ", text)
 
 
+def error_line(err: BaseException) -> str:
+    """An exception's message on one line (its whitespace collapsed), or its type's name
+    when it has none."""
+    return " ".join(str(err).split()) or type(err).__name__
+
+
 def raise_trace_error(
     file: str,
     problem: str,

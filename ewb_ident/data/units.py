@@ -19,6 +19,12 @@ from ewb_ident.data.trace import COLUMNS, raise_trace_error
 #: SI unit -> (shown unit, factor).
 SHOWN_UNITS = {"m": ("mm", 1e3), "m/deg": ("µm/deg", 1e6), "m/deg^2": ("nm/deg²", 1e9)}
 
+
+def shown_unit(unit: str) -> tuple[str, float]:
+    """The unit a value in the SI unit ``unit`` is shown in (mm for m; others as they
+    are) and the factor from SI to it."""
+    return SHOWN_UNITS.get(unit, (unit, 1.0))
+
 #: Units a mapping may declare: name -> (quantity, size of the unit in SI units).
 #: Angles are measured in radians here; ``theta_deg`` is stored in degrees.
 UNITS: dict[str, tuple[str, float]] = {

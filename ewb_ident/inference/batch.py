@@ -19,6 +19,7 @@ from ewb_ident.data.campaign import Entry, file_hash, with_pad_radius
 from ewb_ident.data.metrics import Z90
 from ewb_ident.data.readers import read_trace
 from ewb_ident.data.stages import CHANNELS
+from ewb_ident.data.trace import error_line
 from ewb_ident.inference.compare import EFFECTIVE_WITHOUT_CURRENT
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS
@@ -86,11 +87,6 @@ def make_job(entry: Entry, *, fill_gaps: bool, check_units: bool, version: str) 
     )
 
 
-def _one_line(err: BaseException) -> str:
-    text = " ".join(str(err).split())
-    return text if text else type(err).__name__
-
-
 def _why(result) -> str | None:
     """Why a fit is not trustworthy, in a line (``None`` for status ``ok``): the
     solver's message, or the acceptance warning that rejected it."""
@@ -130,7 +126,7 @@ def fit_job(job: TraceJob) -> dict[str, Any]:
         trace = with_pad_radius(trace, job.r_eff_m)
         result = fit(trace)
     except Exception as err:  # a failed trace is a row of the table, not a crash
-        return record | {"status": "error", "message": _one_line(err),
+        return record | {"status": "error", "message": error_line(err),
                          "fit_seconds": time.perf_counter() - t0}
     effective = () if trace.has("current_A") else EFFECTIVE_WITHOUT_CURRENT
     for name in result.free:

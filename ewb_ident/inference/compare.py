@@ -27,7 +27,7 @@ import numpy as np
 from ewb_ident.data.metrics import Z90
 from ewb_ident.data.stages import STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
-from ewb_ident.data.units import SHOWN_UNITS
+from ewb_ident.data.units import shown_unit
 from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
@@ -105,10 +105,10 @@ class Comparison:
         order = sorted(self.changes, key=lambda c: -(c.p_changed or 0.0))
         moved = [c for c in order if c.changed]
         if moved:
-            head = "Changed: " + "; ".join(_change_words(c, interval=True) for c in moved) + "."
+            head = "Changed: " + "; ".join(_change_words(c) for c in moved) + "."
         else:
             head = "No parameter changed beyond its tolerance (P > 0.95 for none)."
-        undecided = [c.name for c in order if not c.changed and (c.p_changed or 0.0) >= 0.5]
+        undecided = [c.name for c in order if _verdict(c) == "undecided"]
         if undecided:
             head += (
                 f" Undecided (more likely changed than not, but below 0.95): "
@@ -120,7 +120,7 @@ class Comparison:
             "tolerance (1 % of the old value unless given).",
         ]
         for c in order:
-            lines.append(f"  {_verdict(c):<9} {_change_words(c, interval=True)}")
+            lines.append(f"  {_verdict(c):<9} {_change_words(c)}")
         if any(c.name in MOTOR_COMBINATIONS for c in self.changes):
             lines.append(
                 "Without current_A the motor's L, kb and M are effective values (R and v "
@@ -192,14 +192,14 @@ def _verdict(c: ParameterChange) -> str:
     return "undecided" if (c.p_changed or 0.0) >= 0.5 else "unchanged"
 
 
-def _change_words(c: ParameterChange, interval: bool) -> str:
+def _change_words(c: ParameterChange) -> str:
     """A change in the units a researcher reads: old → new, the change and its 90 %
     interval, relative change, P(beyond the tolerance)."""
     unit = PARAMS[c.name].unit if c.name in PARAMS else MOTOR_COMBINATIONS[c.name]
-    shown, k = SHOWN_UNITS.get(unit, (unit, 1.0))
+    shown, k = shown_unit(unit)
     shown = "" if shown == "1" else f" {shown}"
     text = f"{c.name} {c.old * k:.4g} → {c.new * k:.4g}{shown} ({c.delta * k:+.3g}{shown}"
-    if interval and c.low90 is not None:
+    if c.low90 is not None:
         text += f" [{c.low90 * k:+.3g}, {c.high90 * k:+.3g}]"
     if c.old:
         text += f", {100 * c.delta / c.old:+.1f} %"

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize, stats
 
+from ewb_ident.data.metrics import Z90
 from ewb_ident.inference.compare import ParameterChange, practical_tolerance
 
 #: Probability of every interval here (two-sided).
@@ -105,13 +106,12 @@ def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Comb
     keep = np.isfinite(y) & np.isfinite(s) & (s > 0)
     y, v = y[keep], s[keep] ** 2
     k = int(y.size)
-    z = float(stats.norm.ppf(0.5 + LEVEL / 2))
     if k == 0:
         return None
     if k == 1:
         se = math.sqrt(float(v[0]))
         m = float(y[0])
-        return Combined(1, m, se, m - z * se, m + z * se, math.inf, None, None, None, None)
+        return Combined(1, m, se, m - Z90 * se, m + Z90 * se, math.inf, None, None, None, None)
     w = 1.0 / v
     mu_fixed = float(np.sum(w * y) / np.sum(w))
     q = float(np.sum(w * (y - mu_fixed) ** 2))

@@ -236,8 +236,9 @@ def _sample(
         for w in (f.misfits if f.converged else f.warnings)
     ]
     # What the channels cannot determine holds for the intervals too (a, c measured in
-    # the nominal polynomial's displacement without x_m, mu held without torque_Nm).
-    for f in fits:
+    # the nominal polynomial's displacement without x_m, mu held without torque_Nm); a
+    # fit that did not converge gave them above, among all its warnings.
+    for f in (f for f in fits if f.converged):
         notes += [w for w in structural_notes(f.stage, traces, tuple(f.free)) if w not in notes]
     for s in ("gap", "force"):
         if s in stages:

@@ -19,10 +19,11 @@ import numpy as np
 import pandas as pd
 
 from ewb_ident.data.stages import CHANNELS
+from ewb_ident.data.units import shown_unit
 from ewb_ident.inference.population import group_change, random_effects
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS
 from ewb_ident.reporting.html import CSS
-from ewb_ident.reporting.style import SHOWN_UNITS, png_bytes, subplots
+from ewb_ident.reporting.style import png_bytes, subplots
 
 #: The results table's own columns, in order; the manifest's metadata columns come
 #: after ``trace``. ``message`` and ``r_eff_m`` are more than the contract asks.
@@ -85,6 +86,11 @@ def _usable(results: pd.DataFrame) -> pd.DataFrame:
     return results[(results["status"] == "ok") & results["parameter"].notna()]
 
 
+def _combined(rows: pd.DataFrame):
+    """The random-effects combination of one parameter's rows (``None``: none usable)."""
+    return random_effects(rows["estimate"].to_numpy(), rows["stderr"].to_numpy(float))
+
+
 def _ordered(names) -> list[str]:
     return sorted(set(names), key=lambda n: MODEL_PARAMS.index(n) if n in MODEL_PARAMS else 99)
 
@@ -99,8 +105,7 @@ def population_table(results: pd.DataFrame, group_by: str | None = None) -> pd.D
     rows = []
     for label, sub in groups:
         for name in _ordered(sub["parameter"]):
-            one = sub[sub["parameter"] == name]
-            comb = random_effects(one["estimate"].to_numpy(), one["stderr"].to_numpy(float))
+            comb = _combined(sub[sub["parameter"] == name])
             if comb is None:
                 continue
             rows.append({
@@ -125,11 +130,8 @@ def changes_table(results: pd.DataFrame, group_by: str) -> pd.DataFrame:
     for after in labels[1:]:
         before = labels[0]
         for name in _ordered(ok["parameter"]):
-            sides = []
-            for g in (before, after):
-                one = ok[(ok[group_by] == g) & (ok["parameter"] == name)]
-                sides.append(random_effects(one["estimate"].to_numpy(),
-                                            one["stderr"].to_numpy(float)))
+            sides = [_combined(ok[(ok[group_by] == g) & (ok["parameter"] == name)])
+                     for g in (before, after)]
             if None in sides:
                 continue
             ch = group_change(name, *sides)
@@ -168,7 +170,7 @@ def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None
         ok = ok[ok[against].notna()]
     fig, axes = subplots(len(names), 1, figsize=(7.5, 2.1 * len(names) + 0.6), squeeze=False)
     for ax, name in zip(axes[:, 0], names, strict=True):
-        unit, k = SHOWN_UNITS.get(PARAMS[name].unit, (PARAMS[name].unit, 1.0))
+        unit, k = shown_unit(PARAMS[name].unit)
         one = ok[ok["parameter"] == name]
         if against is None:
             x = np.array([traces.index(t) for t in one["trace"]], dtype=float)
@@ -179,8 +181,7 @@ def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None
             size = one.groupby(against)[against].transform("size").to_numpy()
             x = x + 0.3 * (rank - (size - 1) / 2) / np.maximum(size, 1)
             for c in cats:
-                sub = one[one[against] == c]
-                comb = random_effects(sub["estimate"].to_numpy(), sub["stderr"].to_numpy(float))
+                comb = _combined(one[one[against] == c])
                 if comb is not None:
                     j = pos[c]
                     ax.fill_between([j - 0.25, j + 0.25], comb.low90 * k, comb.high90 * k,

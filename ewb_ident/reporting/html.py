@@ -22,9 +22,11 @@ from typing import Any
 
 import numpy as np
 
+from ewb_ident.data.campaign import file_hash
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
 from ewb_ident.data.outputs import write_run
 from ewb_ident.data.trace import Trace
+from ewb_ident.data.units import shown_unit
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import param_info
 from ewb_ident.model.params import SEED
@@ -36,7 +38,7 @@ from ewb_ident.reporting.report_figures import (
     pair_figure,
     phases_of,
 )
-from ewb_ident.reporting.style import CHANNEL_LABELS, PHASE_COLOURS, SCALE, SHOWN_UNITS, png_bytes
+from ewb_ident.reporting.style import CHANNEL_LABELS, PHASE_COLOURS, SCALE, png_bytes
 
 
 def phase_table(trace: Trace, predictions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
@@ -81,7 +83,7 @@ def _e(x: Any) -> str:
 def _shown(name: str) -> tuple[str, float]:
     """The unit a parameter is shown in (mm, not m) and the factor from SI to it."""
     unit = param_info(name.split("[")[0] if "." not in name else name).unit
-    return SHOWN_UNITS.get(unit, (unit, 1.0))
+    return shown_unit(unit)
 
 
 def _times(v: Any, k: float) -> Any:
@@ -440,7 +442,6 @@ def _provenance(traces: Sequence[Trace], command: str | None) -> str:
     """Tool version, date, command and, per trace, file, SHA-256, r_eff and its source,
     and the column mapping."""
     import datetime
-    import hashlib
     from importlib import metadata
 
     try:
@@ -456,7 +457,7 @@ def _provenance(traces: Sequence[Trace], command: str | None) -> str:
     for t in traces:
         digest = "–"
         if t.path is not None and Path(t.path).is_file():
-            digest = hashlib.sha256(Path(t.path).read_bytes()).hexdigest()
+            digest = file_hash(t.path)
         mapped = ", ".join(f"{src} → {col}" for col, src in t.column_sources.items())
         rows += [
             [f"trace {_e(t.name)}", _e(t.label)],

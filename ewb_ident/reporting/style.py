@@ -9,8 +9,6 @@ import io
 import numpy as np
 from matplotlib.figure import Figure
 
-from ewb_ident.data.units import SHOWN_UNITS  # noqa: F401 (re-exported)
-
 #: One phase palette for every figure, the report's and the diagnosis's.
 PHASE_COLOURS = {
     "gapping": "#f0f0f0",

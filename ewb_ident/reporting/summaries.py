@@ -142,10 +142,10 @@ def headline(result: FitResult, posterior=None, diagnosis=None, corrected_poster
     """a, b, c, mu with their 90 % intervals: the baseline fit's and, when the diagnosis
     corrected the model, the corrected one's (MCMC HDIs where a posterior ran, else the
     estimate ± 1.645 standard errors), in the report's units."""
+    from ewb_ident.data.units import shown_unit
     from ewb_ident.diagnosis.corrected import merged_spread
     from ewb_ident.inference.log_posterior import CONTRACT_PARAMS
     from ewb_ident.mechanisms.base import RESOLVED_Z as Z
-    from ewb_ident.reporting.style import SHOWN_UNITS
 
     rows = [("baseline", result.values, result.stderr, posterior)]
     if diagnosis is not None and diagnosis.augmented_params and diagnosis.findings:
@@ -165,7 +165,7 @@ def headline(result: FitResult, posterior=None, diagnosis=None, corrected_poster
     }
     lines = ["a, b, c, mu with 90 % intervals:"]
     for name in CONTRACT_PARAMS:
-        unit, k = SHOWN_UNITS.get(PARAMS[name].unit, (PARAMS[name].unit, 1.0))
+        unit, k = shown_unit(PARAMS[name].unit)
         for model, values, stderr, post in rows:
             v, se = values.get(name), stderr.get(name)
             if v is None:
