@@ -155,3 +155,11 @@ def test_compare_says_each_step_as_it_starts():
     compare(old_t, new_t, stage="torque", progress=steps.append)
     assert steps[:2] == ["fitting OLD", "fitting NEW"]
     assert all(s.startswith("fitting") for s in steps)
+
+
+def test_the_same_recording_on_both_sides_is_refused_before_any_fit():
+    from ewb_ident.data.trace import TraceError
+
+    trace, _ = rig.simulate_rig(rig.RigParams(), sample_rate_hz=100.0, seed=1, name="one")
+    with pytest.raises(TraceError, match="same samples as trace 1"):
+        compare([trace], [trace], stage="torque", progress=pytest.fail)

@@ -608,7 +608,7 @@ def check_traces(
                 " read it first with ewb_ident.read_trace"
             )
         validate(tr, stages=stages, check_units=not tr.sidecar.get(UNITS_UNCHECKED, False))
-    _check_repeats(out)
+    check_repeats(out)
     return out
 
 
@@ -621,7 +621,7 @@ def check_trace(trace: Any, *, argument: str = "trace") -> Trace:
     return out
 
 
-def _check_repeats(traces: tuple[Trace, ...]) -> None:
+def check_repeats(traces: tuple[Trace, ...]) -> None:
     """Refuse a recording given twice: its evidence would count twice (every standard
     error shrunk by 1/sqrt(2)) without a second measurement behind it."""
     for j, b in enumerate(traces):

@@ -28,7 +28,7 @@ from ewb_ident.data.metrics import Z90
 from ewb_ident.data.stages import STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.units import shown_unit
-from ewb_ident.data.validation import check_traces
+from ewb_ident.data.validation import check_repeats, check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.problem import FitError, default_free
@@ -278,6 +278,7 @@ def compare(
     """
     say = progress or (lambda text: None)
     old, new = check_traces(old, argument="old"), check_traces(new, argument="new")
+    check_repeats((*old, *new))  # the same recording on both sides: before any fit
     _check_same_parameters(old, new, stage, free)
     say("fitting OLD")
     fo = fit(list(old), stage=stage, free=free)
