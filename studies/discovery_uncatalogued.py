@@ -148,8 +148,8 @@ def _stages_ok(truth: dict[str, Any]) -> set[str]:
 
 def _dependency_ok(truth_deps, found_deps) -> bool:
     found = set()
-    for d in found_deps:
-        found.add("force_history" if d.startswith("force_history") else d)
+    for d in found_deps:  # a low-passed history is its signal's (heat_history_0.5s: heat)
+        found.add("force_history" if d.startswith("force_history") else d.split("_history")[0])
     for t in truth_deps:
         for d in found:
             if t == d or t in SAME.get(d, set()) or d in SAME.get(t, set()):

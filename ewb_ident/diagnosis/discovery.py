@@ -79,7 +79,7 @@ from ewb_ident.diagnosis.inputs import (
     stacked,
 )
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
-from ewb_ident.model.integrate import zoh_map
+from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 #: ... a learned term must also remove at least this share of the held-out excess over
@@ -121,8 +121,7 @@ def motor_response(values: Mapping[str, float], dt: float, n: int) -> np.ndarray
     to a load torque (column 1) held over one sample: ``h[k, out, inp]`` is the output
     at sample ``k`` after a unit input over sample 0 (the outputs lag by one sample)."""
     A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
-    Ad, b_V = (np.asarray(z) for z in zoh_map(A, B_V, dt))
-    Bd = np.stack([b_V, np.asarray(zoh_map(A, B_tau, dt)[1])], axis=1)
+    Ad, Bd = zoh_exact(A, np.stack([B_V, B_tau], axis=1), dt)
     h = np.zeros((n, 2, 2))
     x = Bd.copy()
     for k in range(1, n):
@@ -400,6 +399,7 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     n_pad = r.size // len(chans)
     cols = [c for g in groups.values() for c in g]
     G = G_of(np.stack([np.ones(n) if c.values is None else c.values for c in cols], axis=1))
+    G[:, ~np.all(np.isfinite(G), axis=0)] = 0.0  # a column the model cannot carry: unused
     keep = np.linalg.norm(G, axis=0) > 0
     norms = np.where(keep, np.linalg.norm(G, axis=0), 1.0)
     G = G / norms

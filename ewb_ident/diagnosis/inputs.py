@@ -14,7 +14,7 @@ import numpy as np
 
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.locate import disc_angle
-from ewb_ident.model.integrate import zoh_map
+from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 #: Time constants of the low-passed histories, s.
@@ -93,7 +93,8 @@ def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
     dt, n = trace.dt, trace.n
     m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
     A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
-    Ad, bd = (np.asarray(z) for z in zoh_map(A, B_V, dt / m))
+    Ad, bd = zoh_exact(A, B_V, dt / m)
+    bd = bd[:, 0]
     V = trace["voltage_V"]
     # The flow over a whole sample, then each sub-step from the sample's start state.
     Am = np.linalg.matrix_power(Ad, m)
@@ -176,12 +177,24 @@ def input_signals(
     if cur is not None:
         add("current", cur, "A", "signed", "the motor current", "i")
         if fine is not None and "current" in fine:
-            f2 = np.asarray(fine["current"]) ** 2
-            per = interval_mean(f2)
+            per = interval_mean(np.asarray(fine["current"]) ** 2)
             heat = np.concatenate([[0.0], np.cumsum(per[:-1])]) * dt
         else:
-            heat = _integral(cur**2, dt)
+            per = cur**2
+            heat = _integral(per, dt)
         add("heat", heat, "A^2*s", "level", "heat dissipated, ∫i²dt", "∫i²dt")
+        # A temperature rise that cools again: the Joule heating through a first-order
+        # thermal lag (a winding, a driver stage, a shunt), one per time constant.
+        for tau in HISTORY_S:
+            words = f"the squared current low-passed over {tau:g} s (a temperature rise)"
+            add(
+                f"heat_history_{tau:g}s",
+                _lowpass(per, dt, tau),
+                "A^2",
+                "level",
+                words,
+                f"ī²{tau:g}s",
+            )
     levels = (
         ("x_m", "x", "m", "the piston displacement", "x", "the piston speed"),
         ("force_N", "force", "N", "the clamping force", "F", "the rate of the force"),
@@ -361,6 +374,8 @@ def form_fn(form: tuple, r: float):
         return lambda v, k=form[1]: np.maximum(v / r - k, 0.0)
     if kind == "nhinge":
         return lambda v, k=form[1]: np.maximum(-v / r - k, 0.0)
+    if kind == "ohinge":
+        return lambda v, k=form[1]: np.sign(v) * np.maximum(np.abs(v) / r - k, 0.0)
     if kind == "harm":
         return lambda v, k=form[1], g=TRIG[form[2]]: g(k * v)
     if kind == "period":
@@ -380,7 +395,8 @@ def form_values(
     ----------
     form
         ``(kind, *args)``: ``pow``, ``spow``, ``abs``, ``tanh``, ``sqrt``, ``sat``,
-        ``hinge``, ``nhinge`` (the hinge of the negated signal), ``harm``, ``period`` of
+        ``hinge``, ``nhinge`` (the hinge of the negated signal), ``ohinge`` (the odd
+        hinge of the magnitude), ``harm``, ``period`` of
         ``signal``; ``prod``, ``prod2``, ``prodabs``
         of the carrier ``form[1]`` times a function of ``form[2]``; ``one``.
     signal
@@ -443,14 +459,22 @@ def _harmonic(s: Signal, k: int, signals) -> list[Column]:
 
 
 def _signed(s: Signal, signals) -> list[Column]:
-    """The odd functions of a signed input (its even part, one-sided and dead-zone forms
-    are the distillation library's: :func:`library`)."""
+    """The odd functions of a signed input, with the odd hinges of its magnitude beyond
+    a knot (a clipping or a dead zone; its even part and one-sided forms are the
+    distillation library's: :func:`library`)."""
     return [
         _col(s.symbol, s.name, ("pow", 1), signals),
         _col(f"{s.symbol}|{s.symbol}|", s.name, ("spow", 2), signals),
         _col(f"{s.symbol}³", s.name, ("pow", 3), signals),
         _col(f"sign({s.symbol})", s.name, ("tanh", 0.05), signals),
+        *_odd_hinges(s, signals),
     ]
+
+
+def _odd_hinges(s: Signal, signals) -> list[Column]:
+    """``sign(s) max(0, |s| - k)``, knots at :data:`SIDE_KNOTS` of its size."""
+    cols = [_col("", s.name, ("ohinge", q), signals) for q in SIDE_KNOTS]
+    return [replace(c, label=physical(c, signals)[0]) for c in cols]
 
 
 #: Knots of a signed input's hinges in the library, as shares of its largest excursion
@@ -544,6 +568,7 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[C
                 _col(f"sign({sym})", name, ("tanh", 0.05), signals),
                 _col(f"tanh({sym}/{0.3 * s.ref:.3g})", name, ("tanh", 0.3), signals),
                 *_side_hinges(s, (0.0, *SIDE_KNOTS), signals),
+                *_odd_hinges(s, signals),
             ]
         else:
             cand += [
@@ -601,6 +626,9 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
         knot = col.form[1] * s.ref
         expr = f"max(0, {sym})" if knot == 0 else f"max(0, {sym} − {knot:.4g} {s.unit})"
         return expr, 1.0 / s.ref, s.unit
+    if kind == "ohinge":
+        knot = col.form[1] * s.ref
+        return f"sign({s.symbol})·max(0, |{s.symbol}| − {knot:.4g} {s.unit})", 1.0 / s.ref, s.unit
     return col.label, 1.0, ""
 
 

@@ -142,6 +142,23 @@ def zoh_map(A: jnp.ndarray, B: jnp.ndarray, h: ArrayLike) -> tuple[jnp.ndarray, 
     return X[:n, :n], X[:n, n]
 
 
+def zoh_exact(A, B, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`zoh_map` in NumPy for any step: ``exp(A h)`` and ``h phi_1(A h) B`` for
+    each column of ``B`` (n, k), by SciPy's adaptive scaling and squaring. For analyses
+    outside the compiled fit (the diagnosis), where an armature whose ``L/R`` is far
+    below the step (``||A h||`` in the thousands, beyond :func:`expm_fixed`'s range) has
+    a response that is fast, not one that overflows."""
+    from scipy.linalg import expm
+
+    A = np.asarray(A, float)
+    B = np.asarray(B, float).reshape(A.shape[0], -1)
+    n, k = B.shape
+    m = np.zeros((n + k, n + k))
+    m[:n, :n], m[:n, n:] = A * h, B * h
+    E = expm(m)
+    return E[:n, :n], E[:n, n:]
+
+
 def heun_amplification(params: EWBParams, h: float) -> float:
     """Spectral radius of Heun's step ``1 + z + z^2/2`` on the motor's poles.
 
