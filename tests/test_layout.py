@@ -165,26 +165,6 @@ def test_the_facade_resolves_every_public_name():
         assert getattr(ewb_ident, name) is getattr(module, name), name
 
 
-def test_the_python_examples_of_the_documentation_run():
-    """Every ```python block of docs/python-api.md runs as written, in order, from the
-    repository's root (the datasets it names are shipped)."""
-    import os
-    import re
-
-    root = PACKAGE.parent
-    text = (root / "docs" / "python-api.md").read_text(encoding="utf-8")
-    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
-    assert len(blocks) >= 3
-    here = os.getcwd()
-    os.chdir(root)
-    try:
-        scope: dict = {}
-        for k, code in enumerate(blocks):
-            exec(compile(code, f"docs/python-api.md block {k + 1}", "exec"), scope)
-    finally:
-        os.chdir(here)
-
-
 def test_no_commit_hash_or_machine_diary_in_readme_package_or_tests():
     """The README, docstrings and tests say what and why, not when or where: no commit
     hash (a 7-12 character token of hex digits and letters) and no diary of which

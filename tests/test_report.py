@@ -242,3 +242,91 @@ def test_report_takes_the_samplers_options_and_logs_progress_without_a_terminal(
     assert "diagnosing: baseline fits of every stage" in proc.stderr
     page = (tmp_path / "r" / "index.html").read_text()
     assert "2. Parameters" in page
+
+
+def _tables(page: str) -> dict[str, list[list[str]]]:
+    """The page's tables by the heading of the section they are in: rows of cell texts
+    (the first row is the header)."""
+    import html as _html
+    import re
+
+    out: dict[str, list[list[str]]] = {}
+    for section in re.split(r"(?=<h2>)", re.sub(r"<img[^>]*>", "", page)):
+        head = re.match(r"<h2>(.*?)</h2>", section)
+        name = _html.unescape(head.group(1)) if head else "top"
+        for k, table in enumerate(re.findall(r"<table>(.*?)</table>", section, flags=re.S)):
+            rows = [
+                [_html.unescape(re.sub(r"<[^>]+>", "", c)).strip()
+                 for c in re.findall(r"<t[hd][^>]*>(.*?)</t[hd]>", row, flags=re.S)]
+                for row in re.findall(r"<tr>(.*?)</tr>", table, flags=re.S)
+            ]  # fmt: skip
+            out[f"{name} #{k}"] = rows
+    return out
+
+
+def _column(tables, section: str, column: str) -> dict[str, str]:
+    """Row label -> cell of ``column`` in the first table of ``section`` that has it."""
+    for name, rows in tables.items():
+        if name.startswith(section) and column in rows[0]:
+            j = rows[0].index(column)
+            return {r[0]: r[j] for r in rows[1:]}
+    raise AssertionError(f"no column {column!r} in section {section!r}")
+
+
+def _agree(shown: list[str]) -> bool:
+    """Numbers shown with different precision agree when each is the other rounded:
+    every value lies within half a unit of the last digit of the coarsest."""
+    import decimal
+
+    values = [decimal.Decimal(s) for s in shown]
+    step = max(decimal.Decimal(1).scaleb(v.as_tuple().exponent) for v in values)
+    return max(values) - min(values) <= step / 2 + step / 1000
+
+
+def test_every_quantity_the_report_shows_twice_has_one_value_and_one_unit(hysteresis):
+    """The report of a shipped trace (the main job's, with its diagnosis): a baseline
+    parameter or error shown in more than one place (the summary, section 2, section 2b,
+    section 3) has one value there, to the digits shown, and a parameter has one unit
+    in every table and in the summary (a and c in mm)."""
+    import html as _html
+    import re
+
+    _, trace, result, diagnosis = hysteresis
+    page, _ = build_report([trace], result, diagnosis=diagnosis)
+    tables = _tables(page)
+    top = page.split("<b>Summary</b>")[1].split("</ul>")[0]
+    summary = _html.unescape(re.sub(r"<[^>]+>", "", top))
+    baseline_line = summary.split("Baseline")[1].split("Corrected")[0]
+
+    # units: one per parameter, in every table that has a unit column, and in the summary
+    units: dict[str, set[str]] = {}
+    for rows in tables.values():
+        if rows[0][:2] == ["parameter", "unit"]:
+            for r in rows[1:]:
+                units.setdefault(r[0], set()).add(r[1])
+    for name, seen in units.items():
+        assert len(seen) == 1, f"{name} shown in {seen}"
+    assert units["a"] == units["c"] == {"mm"}
+    for name in ("a", "c"):
+        assert re.search(rf"\b{name} = [\d.]+ mm \[", baseline_line), baseline_line
+
+    # baseline parameters: the summary, section 2 and section 2b
+    ls = _column(tables, "2. Parameters", "least squares")
+    base = _column(tables, "2b.", "baseline")
+    for name in ("a", "b", "c", "mu"):
+        in_summary = re.search(rf"\b{name} = ([\d.e+-]+)", baseline_line).group(1)
+        assert _agree([ls[name], base[name], in_summary]), (name, ls[name], base[name], in_summary)
+
+    # baseline errors: the summary, section 3 and section 2b
+    from ewb_ident.reporting.style import CHANNEL_LABELS
+
+    err3 = _column(tables, "3. Measured", "% error")
+    nrmse3 = _column(tables, "3. Measured", "NRMSE %")
+    err2b = _column(tables, "2b.", "% error baseline")
+    nrmse2b = _column(tables, "2b.", "NRMSE % baseline")
+    for ch in ("force_N", "torque_Nm"):
+        label = CHANNEL_LABELS[ch]
+        in_summary = re.search(rf"{ch} ([\d.]+) %", summary).group(1)
+        shown = [err3[label], err2b[ch], in_summary]
+        assert _agree(shown), (ch, "% error", shown)
+        assert _agree([nrmse3[label], nrmse2b[ch]]), (ch, "NRMSE", nrmse3[label], nrmse2b[ch])

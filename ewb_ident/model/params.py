@@ -32,7 +32,10 @@ Transform = Literal["log", "logit", "affine"]
 class EWBParams(eqx.Module):
     """Physical parameters of the EWB rig model (an immutable pytree).
 
-    Parameters
+    ``EWBParams(R=..., a=..., ...)`` takes each as a keyword; the defaults are
+    :data:`SEED`'s.
+
+    Attributes
     ----------
     R
         Armature resistance, ohm.

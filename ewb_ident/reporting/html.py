@@ -188,7 +188,7 @@ def build_report(
         ddoc.get("verdict") == "found" or any(not f.get("catalog", True) for f in ddoc["findings"])
     )
     if corrected:
-        parts.append(_corrected_section(ddoc, post, corrected_posterior, corrected_note))
+        parts.append(_corrected_section(fit, ddoc, post, corrected_posterior, corrected_note))
     parts.append(_fit_section(fit, traces, posterior, figures))
     parts.append("<h2>4. The clamping-force curve</h2>")
     figures["bell.png"] = figure_bell(fit.params[0], traces)
@@ -513,17 +513,18 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
 
 
 def _corrected_section(
-    ddoc: Mapping[str, Any], post: Any, cpost: Any | None, note: str | None
+    fit: FitResult, ddoc: Mapping[str, Any], post: Any, cpost: Any | None, note: str | None
 ) -> str:
-    """Baseline and corrected parameters side by side, with 90 % intervals."""
+    """Baseline (the report's own fit: the numbers of sections 2 and 3, computed once)
+    and corrected parameters side by side, with 90 % intervals."""
+    from ewb_ident.data.metrics import Z90 as z
+
     aug = ddoc.get("augmented", {})
-    base = ddoc.get("baseline", {})
     if not aug.get("params"):
         return (
             '<h2>2b. Corrected model</h2><div class="warn">The whole-chain refit with the '
             "findings failed, so no corrected parameters are available.</div>"
         )
-    z = 1.6448536269514722  # 90 % two-sided, normal
     cdoc = cpost.to_summary_json() if cpost is not None else None
     if cdoc is not None:
         state = "converged" if cdoc["converged"] else "did NOT converge: see its warnings below"
@@ -542,7 +543,7 @@ def _corrected_section(
         + _e(", ".join(aug.get("mechanisms", [])))
         + " switched on (ewb-ident fit TRACE --with-diagnosis DIR). "
         + how
-        + " The baseline column repeats the baseline's values.</p>",
+        + " The baseline columns repeat sections 2 and 3.</p>",
     ]
     rows = []
     hp = post["params"] if post else {}
@@ -553,8 +554,7 @@ def _corrected_section(
     names += [n for n in aug["params"] if "." in n and not n.startswith("learned[")]
     for n in names:
         v, se = aug["params"][n], aug.get("stderr", {}).get(n)
-        b = base.get("params", {}).get(n)
-        bs = base.get("stderr", {}).get(n)
+        b, bs = fit.values.get(n), fit.stderr.get(n)
         hdi, chdi = hp.get(n, {}), cp.get(n, {})
         unit, k = _shown(n)
         if hdi:
@@ -576,7 +576,7 @@ def _corrected_section(
     if cdoc is not None:
         out += [f'<div class="warn">{_e(w)}</div>' for w in cdoc["warnings"]]
     rows = []
-    for ch, m in base.get("metrics", {}).items():
+    for ch, m in fit.metrics.items():
         a = aug.get("metrics", {}).get(ch, {})
         seed = SEED_PERCENT_ERROR.get(ch)
         rows.append(
@@ -615,8 +615,8 @@ def _diagnosis_section(doc: Mapping[str, Any], diagnosis: Any, figures: dict[str
     }
     kind = "ok" if verdict == "none" else "warn"
     out.append(f'<div class="{kind}">{_e(words.get(verdict, verdict))}</div>')
-    for note in doc.get("notes", []):
-        out.append(f"<p>Note: {_e(note)}</p>")
+    out.append('<p class="small">Before/after: the diagnosis\'s own noise-weighted fits.</p>')
+    out += [f"<p>Note: {_e(note)}</p>" for note in doc.get("notes", [])]
     for f in doc.get("findings", []):
         head = f"<b>{_e(f['effect'])}</b> ({_e(f['stage'])} stage)"
         out.append(f'<div class="finding">{head}: {_e(f["explanation"])}</div>')
