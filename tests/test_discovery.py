@@ -401,3 +401,48 @@ def test_a_place_whose_fit_cannot_be_linearised_learns_no_term(monkeypatch):
     monkeypatch.setattr(augmented, "residuals_and_jacobian", not_finite)
     assert disc_mod._linearised(ses, ses.base_fits["force"], "force.output")[4] is None
     assert disc_mod.discover(ses, "force", lambda stages: ses.fit(stages, ())) is None
+
+
+def test_the_motor_response_of_an_armature_far_faster_than_the_sample_is_finite():
+    """An armature with L/R far below the sample step (||A dt|| in the thousands) has a
+    fast response, not an overflowing one: the response equals the exponential map's
+    for a usual armature, and tends to its L -> 0 limit for a tiny one."""
+    from ewb_ident.model.integrate import zoh_map
+    from ewb_ident.model.physics import motor_matrices
+
+    values = {"R": 1.0, "L": 2e-3, "kb": 0.09, "kT": 0.1, "M": 2e-5, "v": 0.002}
+    A, B_V, _ = motor_matrices(*values.values())
+    F, g = (np.asarray(z, float) for z in zoh_map(A, B_V, 1e-3))
+    h = disc_mod.motor_response(values, 1e-3, 200)
+    # Sample 2's response to a unit voltage over sample 0 is F g (current, angle in deg).
+    np.testing.assert_allclose(h[2, 0, 0], (F @ g)[0], rtol=1e-10)
+    np.testing.assert_allclose(h[2, 1, 0], (F @ g)[2] * 180 / np.pi, rtol=1e-10)
+    fast = disc_mod.motor_response(values | {"L": 3e-7}, 1e-3, 200)
+    faster = disc_mod.motor_response(values | {"L": 3e-9}, 1e-3, 200)
+    assert np.all(np.isfinite(fast))
+    np.testing.assert_allclose(fast[1:], faster[1:], rtol=1e-2, atol=1e-3 * np.abs(faster).max())
+
+
+def test_a_temperature_rise_that_cools_is_an_input_and_a_clipping_is_in_the_basis():
+    """The squared current low-passed over each history time constant is an input (a
+    thermal state with that time constant), and a signed input's learned basis holds
+    the odd hinges sign(s) max(0, |s| - k) of a clipping or dead zone."""
+    trace, run, _ = _clean()
+    i = np.asarray(run.states["current_A"], float)
+    sig = inputs.input_signals(trace, {"current_A": i})
+    a = np.exp(-trace.dt / 0.5)
+    lp = np.empty_like(i)
+    acc = i[0] ** 2
+    for k, v in enumerate(i**2):
+        acc = a * acc + (1 - a) * v
+        lp[k] = acc
+    np.testing.assert_allclose(sig["heat_history_0.5s"].values, lp, rtol=1e-9, atol=1e-12)
+    groups = inputs.learned_groups(sig)
+    forms = [c.form for c in groups["current"]]
+    assert ("ohinge", 1 / 3) in forms and ("ohinge", 2 / 3) in forms
+    col = next(c for c in groups["current"] if c.form == ("ohinge", 2 / 3))
+    ref = sig["current"].ref
+    np.testing.assert_allclose(
+        col.values, np.sign(i) * np.maximum(np.abs(i) / ref - 2 / 3, 0.0), atol=1e-12
+    )
+    assert col.label.startswith("sign(i)·max(0, |i| − ")
