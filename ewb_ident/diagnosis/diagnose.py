@@ -99,6 +99,7 @@ from ewb_ident.diagnosis.session import (
     chain_prefixed,
     fitted_mechanism,
 )
+from ewb_ident.diagnosis.signatures import not_generalised
 from ewb_ident.inference.augmented import (
     AugFit,
     fit_mechanisms,
@@ -569,12 +570,25 @@ def _second_opinion(ses: Session, work: _Work) -> None:
         own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
         explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
         learned = min(disc.learned.share, 1.0)
-        if learned <= explained + CATALOG_MARGIN:
-            continue
         why = (
             f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
             f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
         )
+        if learned <= explained + CATALOG_MARGIN:
+            # The catalog explains as much; but if a learned term is still needed on top
+            # of it and the learned term alone does about as well as both together, the
+            # catalog name adds nothing the data ask for (one explanation, not two).
+            top = discover(ses, stage, _fits_of(ses, work.selected))
+            if top is None or not top.learned.generalises:
+                continue
+            both = explained + (1.0 - explained) * min(top.learned.share, 1.0)
+            if learned < both - CATALOG_MARGIN:
+                continue
+            why = (
+                f"a learned term at {disc.place} alone removes {100 * learned:.0f} % of the "
+                f"excess on held-out data, about as much as {', '.join(m.variant for m in at)} "
+                f"with a learned term on top ({100 * both:.0f} %)"
+            )
         for mech in at:
             work.selected.remove(mech)
             ev = work.evidence.pop(mech.variant)
@@ -608,7 +622,7 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
         if disc is None:
             continue
         if not disc.learned.groups or not disc.distilled.generalises:
-            work.notes.append(_not_generalised(disc))
+            work.notes.append(not_generalised(disc))
             continue
         res = fit_learned(ses, disc, work.selected, bic_threshold)
         if res is None:
@@ -633,26 +647,6 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
         for st in f_new.stages:
             work.current[st] = f_new
             done.add(st)
-
-
-def _not_generalised(disc: Discovery) -> str:
-    """Words for a stage whose learned term does not generalise."""
-    pf = disc.learned
-    if not pf.groups:
-        return (
-            f"{disc.stage} stage: no learned term at any of its places "
-            f"({', '.join(p.place for p in disc.places)}) improves held-out data "
-            f"({disc.method}): unexplained"
-        )
-    d = disc.distilled if disc.learned.generalises else pf
-    what = "its distilled equation" if d is disc.distilled else "it"
-    ins = 100.0 * (d.insample_before - d.insample_after) / max(d.insample_before, 1e-300)
-    return (
-        f"{disc.stage} stage: a term learned at {disc.place} depending on "
-        f"{', '.join(disc.depends_on) or ', '.join(pf.groups)}: {what} lowers the residual "
-        f"it was fitted to by {ins:.0f} % and held-out data ({disc.method}) by "
-        f"{d.improvement_pct:.0f} %, but {d.why_not}: it is not a finding"
-    )
 
 
 def _promote(work: _Work, rival: _Tried, generic_ev: dict[str, float]) -> None:

@@ -15,7 +15,6 @@ from ewb_ident.diagnosis.discovery import (
     LearnedSpec,
     basis_matrix,
     learned_term,
-    reading,
 )
 from ewb_ident.diagnosis.inputs import physical
 from ewb_ident.diagnosis.locate import (
@@ -29,6 +28,7 @@ from ewb_ident.diagnosis.locate import (
 )
 from ewb_ident.diagnosis.result import Finding
 from ewb_ident.diagnosis.session import SEPARATE, Session, bic_evidence, stage_order, stall_torque
+from ewb_ident.diagnosis.signatures import reading
 from ewb_ident.inference.augmented import AugFit, fit_mechanisms
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.mechanisms.base import RESOLVED_Z, fmt_pm

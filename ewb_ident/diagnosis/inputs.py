@@ -14,8 +14,7 @@ import numpy as np
 
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.locate import disc_angle
-from ewb_ident.model.integrate import zoh_exact
-from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
+from ewb_ident.model.physics import DEG_PER_RAD
 
 #: Time constants of the low-passed histories, s.
 HISTORY_S = (0.1, 0.5, 2.0)
@@ -78,39 +77,6 @@ def leave_one_out(y: np.ndarray, half: int) -> np.ndarray:
     lo, hi = np.maximum(k - half, 0), np.minimum(k + half + 1, n)
     count = hi - lo - 1
     return (c[hi] - c[lo] - y) / np.maximum(count, 1)
-
-
-#: Longest sub-step of the motor states resolved within each sample interval, s.
-FINE_STEP_S = 2.5e-4
-
-
-def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
-    """The motor model's states within each sample interval from the logged voltage
-    (the fit's parameters ``values``; exact zero-order-hold flow at sub-steps of at most
-    :data:`FINE_STEP_S`): ``current`` (A), ``speed`` (rad/s), ``angle`` (deg), each of
-    shape (n, m + 1), the interval's start and end included. At the sample times they
-    are the motor stage's own prediction."""
-    dt, n = trace.dt, trace.n
-    m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
-    A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
-    Ad, bd = zoh_exact(A, B_V, dt / m)
-    bd = bd[:, 0]
-    V = trace["voltage_V"]
-    # The flow over a whole sample, then each sub-step from the sample's start state.
-    Am = np.linalg.matrix_power(Ad, m)
-    bm = sum(np.linalg.matrix_power(Ad, j) @ bd for j in range(m))
-    starts = np.empty((n, 3))
-    x = np.array([0.0, 0.0, float(values.get("theta0_deg", 0.0)) / DEG_PER_RAD])
-    for k in range(n):
-        starts[k] = x
-        x = Am @ x + bm * V[k]
-    out = np.empty((n, m + 1, 3))
-    S = starts
-    out[:, 0] = S
-    for j in range(1, m + 1):
-        S = S @ Ad.T + bd[None, :] * V[:, None]
-        out[:, j] = S
-    return {"current": out[..., 0], "speed": out[..., 1], "angle": out[..., 2] * DEG_PER_RAD}
 
 
 def input_signals(

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal
 
@@ -361,3 +361,36 @@ def simulate_chain(
         params, voltage_V, dt, theta0_deg, integrator=integrator, load_torque=load_torque
     )
     return motor | chain_from_theta(params, motor["theta_deg"], r_eff_m)
+
+
+#: Longest sub-step of the motor states resolved within each sample interval, s.
+FINE_STEP_S = 2.5e-4
+
+
+def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
+    """The motor model's states within each sample interval from the logged voltage
+    (the fit's parameters ``values``; exact zero-order-hold flow at sub-steps of at most
+    :data:`FINE_STEP_S`): ``current`` (A), ``speed`` (rad/s), ``angle`` (deg), each of
+    shape (n, m + 1), the interval's start and end included. At the sample times they
+    are the motor stage's own prediction."""
+    dt, n = trace.dt, trace.n
+    m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
+    A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
+    Ad, bd = zoh_exact(A, B_V, dt / m)
+    bd = bd[:, 0]
+    V = trace["voltage_V"]
+    # The flow over a whole sample, then each sub-step from the sample's start state.
+    Am = np.linalg.matrix_power(Ad, m)
+    bm = sum(np.linalg.matrix_power(Ad, j) @ bd for j in range(m))
+    starts = np.empty((n, 3))
+    x = np.array([0.0, 0.0, float(values.get("theta0_deg", 0.0)) / DEG_PER_RAD])
+    for k in range(n):
+        starts[k] = x
+        x = Am @ x + bm * V[k]
+    out = np.empty((n, m + 1, 3))
+    S = starts
+    out[:, 0] = S
+    for j in range(1, m + 1):
+        S = S @ Ad.T + bd[None, :] * V[:, None]
+        out[:, j] = S
+    return {"current": out[..., 0], "speed": out[..., 1], "angle": out[..., 2] * DEG_PER_RAD}

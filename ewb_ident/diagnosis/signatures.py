@@ -1,0 +1,163 @@
+"""How a learned term reads: a table of known signatures that turns where a term acts
+and what it depends on into a physical hypothesis (never a catalog name), and the words
+for a stage whose learned term does not generalise."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from ewb_ident.diagnosis.inputs import sensor_signal
+
+#: Known signatures: (place prefix, input, words). The first match reads the term;
+#: every reading is a hypothesis to inspect, never a catalog name.
+SIGNATURES: tuple[tuple[str, str, str], ...] = (
+    (
+        "motor.electrical",
+        "current",
+        "a voltage lost in proportion to (or with the sign of) the "
+        "current: resistance of the supply, wiring or driver, or a brush / switch voltage drop",
+    ),
+    (
+        "motor.electrical",
+        "heat",
+        "a voltage lost growing with the heat dissipated: the "
+        "armature's resistance rising as it warms",
+    ),
+    (
+        "motor.electrical",
+        "time",
+        "a voltage lost that drifts over the recording: heating of "
+        "the armature or a sagging supply",
+    ),
+    (
+        "motor.electrical",
+        "voltage_rate",
+        "the motor sees the logged voltage late or smoothed: a lag in the driver",
+    ),
+    ("motor.electrical", "speed", "a back-EMF that is not proportional to speed"),
+    (
+        "motor.mechanical",
+        "current",
+        "a torque deficit that grows with the current: magnetic "
+        "saturation of the motor (kT falls at high current)",
+    ),
+    (
+        "motor.mechanical",
+        "angle",
+        "a torque that repeats with the pinion angle: cogging, gear "
+        "tooth meshing or an eccentric gear",
+    ),
+    (
+        "motor.mechanical",
+        "speed",
+        "a drag torque depending on speed beyond the viscous term: "
+        "windage, lubricant churning or Coulomb friction",
+    ),
+    ("motor.mechanical", "force", "a load torque from the clamping force"),
+    (
+        "drive",
+        "force",
+        "the piston yields under the clamping force: compliance of the drive "
+        "(worm, wedge or caliper)",
+    ),
+    ("gap", "force", "the piston yields under the clamping force: compliance of the drive"),
+    ("force.output", "x_rate", "force rising with the piston's speed: damping in the caliper"),
+    (
+        "force.output",
+        "force_history",
+        "force relaxing after it changes: viscoelastic creep of the pads",
+    ),
+    (
+        "force.output",
+        "time",
+        "force drifting over the recording at a given displacement: thermal growth or creep",
+    ),
+    ("force.input", "time", "the displacement the caliper feels drifts: thermal expansion"),
+    (
+        "force.input",
+        "energy",
+        "the displacement the caliper feels grows with the braking "
+        "energy: thermal expansion of pads and piston",
+    ),
+    (
+        "force.input",
+        "heat",
+        "the displacement the caliper feels drifts with heating: thermal expansion",
+    ),
+    ("friction", "force", "the friction coefficient depends on the pad pressure"),
+    (
+        "friction",
+        "distance",
+        "the friction coefficient changes with sliding distance: "
+        "bedding-in or a transfer layer building up",
+    ),
+    ("friction", "time", "the friction coefficient drifts over the recording"),
+    (
+        "friction",
+        "energy",
+        "the friction coefficient changes with the braking energy: a thermal effect",
+    ),
+    (
+        "friction",
+        "disc_angle",
+        "the friction torque varies once or twice per disc revolution: "
+        "disc thickness variation or runout",
+    ),
+    (
+        "torque.output",
+        "disc_angle",
+        "the torque varies once or twice per disc revolution: disc thickness variation or runout",
+    ),
+    (
+        "sensor.",
+        "_rate",
+        "the sensor reading lags its own signal: a low-pass filter in its signal conditioning",
+    ),
+    (
+        "sensor.",
+        "own",
+        "the sensor's reading is not proportional to its signal: a calibration nonlinearity",
+    ),
+)
+
+
+def reading(place: str, depends_on: Sequence[str]) -> str:
+    """A physical reading of a learned term from :data:`SIGNATURES` (a hypothesis), or
+    ``""`` when no known signature matches."""
+    own = sensor_signal(place)
+    for pre, inp, words in SIGNATURES:
+        if not place.startswith(pre):
+            continue
+        for dep in depends_on:
+            if inp == "own" and own and dep == own:
+                return words
+            if inp == "_rate" and own and dep == f"{own}_rate":
+                return words
+            if (
+                dep == inp
+                or dep.startswith(inp + "_history")
+                or dep.startswith(inp)
+                and (inp in ("force_history",))
+            ):
+                return words
+    return ""
+
+
+def not_generalised(disc) -> str:
+    """Words for a stage whose learned term does not generalise."""
+    pf = disc.learned
+    if not pf.groups:
+        return (
+            f"{disc.stage} stage: no learned term at any of its places "
+            f"({', '.join(p.place for p in disc.places)}) improves held-out data "
+            f"({disc.method}): unexplained"
+        )
+    d = disc.distilled if disc.learned.generalises else pf
+    what = "its distilled equation" if d is disc.distilled else "it"
+    ins = 100.0 * (d.insample_before - d.insample_after) / max(d.insample_before, 1e-300)
+    return (
+        f"{disc.stage} stage: a term learned at {disc.place} depending on "
+        f"{', '.join(disc.depends_on) or ', '.join(pf.groups)}: {what} lowers the residual "
+        f"it was fitted to by {ins:.0f} % and held-out data ({disc.method}) by "
+        f"{d.improvement_pct:.0f} %, but {d.why_not}: it is not a finding"
+    )
