@@ -43,18 +43,16 @@ import argparse
 import csv
 import gc
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+from studies.diagnosis_accuracy import _read
+from validation_rigs import uncatalogued_rig as ur
 
-import uncatalogued_rig as ur  # noqa: E402
-from diagnosis_accuracy import _read  # noqa: E402
+HERE = Path(__file__).resolve().parent
 
 ROOT = HERE.parent
 OUT = ROOT / "out" / "discovery_uncatalogued"

@@ -622,10 +622,7 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(rig, tmp_path, monkeypatch):
 
 
 def _corpus():
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
-    import misuse_corpus
+    from benchmarks import misuse_corpus
 
     return misuse_corpus
 
