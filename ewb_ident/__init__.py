@@ -95,6 +95,7 @@ _PUBLIC = {
     "Trace": "data.trace",
     "TraceError": "data.trace",
     "InputError": "data.trace",
+    "EWBIdentError": "data.trace",
     "read_trace": "data.readers",
     "write_trace": "data.writers",
     "fit_corrected": "diagnosis.corrected",
@@ -110,6 +111,7 @@ __all__ = sorted(_PUBLIC)
 if TYPE_CHECKING:
     from ewb_ident.data.metrics import channel_metrics as channel_metrics
     from ewb_ident.data.readers import read_trace as read_trace
+    from ewb_ident.data.trace import EWBIdentError as EWBIdentError
     from ewb_ident.data.trace import InputError as InputError
     from ewb_ident.data.trace import Trace as Trace
     from ewb_ident.data.trace import TraceError as TraceError

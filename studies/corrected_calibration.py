@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ewb_ident.data.metrics import Z90
 from ewb_ident.data.outputs import write_text
 from ewb_ident.model import programs
 from studies import diagnosis_accuracy as da
@@ -39,7 +40,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SEED = 20261125
 OUT = ROOT / "reports" / "corrected_calibration"
 PARAMS = ("a", "b", "c", "mu")
-Z90 = 1.6448536269514722
 
 
 def plan(per_id: int) -> list[str]:

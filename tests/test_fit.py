@@ -279,6 +279,16 @@ def test_one_function_gives_standard_errors_and_none_only_on_undetermined_direct
     assert None not in parameter_uncertainty(A, r, u[:3], infos[:3], [(1, n)]).stderr
 
 
+def test_z90_is_the_normal_quantile_of_the_interval_probability():
+    from scipy.special import ndtri
+
+    from ewb_ident.data.metrics import INTERVAL_PROB, Z90
+    from ewb_ident.inference.log_posterior import SamplerSettings
+
+    assert Z90 == float(ndtri(0.5 + INTERVAL_PROB / 2))
+    assert SamplerSettings().hdi_prob == INTERVAL_PROB
+
+
 def test_standard_errors_widen_where_the_model_leaves_physics_out():
     """White residuals: the robust errors are the white ones. A concealed hysteresis
     (the model leaves it out, the residual runs for hundreds of samples): the white

@@ -48,16 +48,10 @@ MAX_STARTS = 24
 #: units of their noise) by less than this together, with the optimum of its linearised
 #: model within one standard error (:func:`ewb_ident.inference.solvers.levenberg_marquardt`).
 STALL = 0.1
-#: Columns a fit may read.
-COLUMNS = (
-    "voltage_V",
-    "theta_deg",
-    "x_m",
-    "force_N",
-    "torque_Nm",
-    "current_A",
-    "disc_speed_rad_s",
-)
+#: Columns a fit may read: the program's (the voltage and the channels of
+#: :data:`ewb_ident.data.stages.CHANNELS`) and the disc speed that speed-dependent
+#: mechanisms read.
+COLUMNS = (*PROGRAM_COLUMNS, "disc_speed_rad_s")
 
 
 def slow_smooth(y: np.ndarray, sigma: float, width: int = 5, fast: int = 1) -> np.ndarray:

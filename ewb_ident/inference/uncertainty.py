@@ -32,8 +32,10 @@ STRONG_CORRELATION = 0.99
 #: Above this standard error in the O(1) coordinate a parameter is poorly determined
 #: (for log-scaled parameters: a relative standard error above 30 %).
 POORLY_DETERMINED = 0.3
-#: The scores' lag-one autocorrelation is clipped here before it sets the bandwidth.
-RHO_MAX = 0.99
+#: The scores' lag-one autocorrelation is clipped here before it sets the bandwidth (not
+#: :data:`ewb_ident.data.metrics.RHO_MAX`, the diagnosis's clip of a residual's: another
+#: estimate, with the value the standard errors were calibrated with).
+SCORE_RHO_MAX = 0.99
 #: A direction of the column-scaled Jacobian whose singular value is below this fraction
 #: of the largest is one the data cannot determine; so is a column whose slope is below
 #: this fraction of the steepest column's.
@@ -80,7 +82,7 @@ def bandwidth(g: np.ndarray) -> int:
         v = float(x @ x)
         if not v > 0:
             continue
-        rho = float(np.clip((x[1:] @ x[:-1]) / v, -RHO_MAX, RHO_MAX))
+        rho = float(np.clip((x[1:] @ x[:-1]) / v, -SCORE_RHO_MAX, SCORE_RHO_MAX))
         s4 = ((1.0 - rho**2) * v / n) ** 2
         num += 4.0 * rho**2 * s4 / ((1.0 - rho) ** 6 * (1.0 + rho) ** 2)
         den += s4 / (1.0 - rho) ** 4

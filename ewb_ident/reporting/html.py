@@ -523,7 +523,8 @@ def _corrected_section(
             '<h2>2b. Corrected model</h2><div class="warn">The whole-chain refit with the '
             "findings failed, so no corrected parameters are available.</div>"
         )
-    z = 1.6448536269514722  # 90 % two-sided, normal
+    from ewb_ident.data.metrics import Z90 as z
+
     cdoc = cpost.to_summary_json() if cpost is not None else None
     if cdoc is not None:
         state = "converged" if cdoc["converged"] else "did NOT converge: see its warnings below"
