@@ -524,7 +524,6 @@ def _corrected_section(
             "findings failed, so no corrected parameters are available.</div>"
         )
     from ewb_ident.data.metrics import Z90 as z
-
     cdoc = cpost.to_summary_json() if cpost is not None else None
     if cdoc is not None:
         state = "converged" if cdoc["converged"] else "did NOT converge: see its warnings below"
