@@ -12,14 +12,13 @@ one parameter after another against side by side, in one process.
    alternately, :data:`RUNS` each: its sampling step's median seconds, and whether the
    two summaries agree.
 
-Run from the repository root: ``python benchmarks/bench_autocorr.py``. Writes
+Run from the repository root: ``python -m benchmarks.bench_autocorr``. Writes
 ``reports/bench_autocorr.md``.
 """
 
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -29,15 +28,13 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).parent))
-
-import bench_fit  # noqa: E402
-
+from benchmarks import bench_fit  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.inference import chains  # noqa: E402
 from ewb_ident.inference.posterior import sample  # noqa: E402
 from ewb_ident.model.programs import parallel_map, threads  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: Calls of each function per chain shape; posterior runs with each.
 REPEATS, RUNS = 20, 4

@@ -1,6 +1,6 @@
 """Benchmark: refit N traces by a Python loop of fits and on a Dask cluster.
 
-    python benchmarks/bench_batch.py [N]        (default N = 100)
+    python -m benchmarks.bench_batch [N]        (default N = 100)
 
 N synthetic traces (position-controlled apply, 200 Hz, 3 s, each another rig unit with
 5 % parameter spread) are fitted as whole chains by a Python loop of ``fit`` in this

@@ -1,6 +1,6 @@
 """Benchmark: XLA's fast-compile preset against the default, program by program.
 
-    python benchmarks/bench_compiler_options.py [--out reports/bench_compiler_options.md]
+    python -m benchmarks.bench_compiler_options [--out reports/bench_compiler_options.md]
 
 First, a whole diagnosis of ``datasets/concealed/stiction.csv`` in one thread, its
 mechanism programs compiled with the default options and with the preset, alternately,
@@ -33,16 +33,14 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).parent))
-
-import bench_fit  # noqa: E402
-
+from benchmarks import bench_fit  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.inference.least_squares import fit  # noqa: E402
 from ewb_ident.inference.posterior import sample  # noqa: E402
 from ewb_ident.model import programs  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
 
 REPEATS = 15
 TRACE = ROOT / "datasets" / "concealed" / "stiction.csv"

@@ -1,7 +1,7 @@
 """Benchmark: drawing a diagnosis's figures as the package does against two
 alternatives, in one process.
 
-    python benchmarks/bench_figures.py [--out reports/bench_figures.md]
+    python -m benchmarks.bench_figures [--out reports/bench_figures.md]
 
 For each of two traces, ``datasets/concealed/stiction.csv`` (500 Hz) and
 ``bench_speed.py``'s stiction trace at 1 kHz (another unit, simulated), diagnoses it
@@ -22,7 +22,6 @@ The first round of each is dropped (font caches); medians of the rest.
 from __future__ import annotations
 
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,19 +31,15 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(ROOT / "tests"))
-
-import bench_fit  # noqa: E402
-import bench_speed  # noqa: E402
-from test_report import one_span_per_run  # noqa: E402  (the shading as it was)
-
+from benchmarks import bench_fit, bench_speed  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.reporting import figures  # noqa: E402
 from ewb_ident.reporting.figures import figures_of  # noqa: E402
 from ewb_ident.reporting.style import png_bytes, shade_phases  # noqa: E402
+from tests.test_report import one_span_per_run  # noqa: E402  (the shading as it was)
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TRACE = ROOT / "datasets" / "concealed" / "stiction.csv"
 ROUNDS = 6

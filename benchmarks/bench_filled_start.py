@@ -2,7 +2,7 @@
 their start: stored programs loaded ahead (the diagnosis), and dask kept out (the
 posterior).
 
-    python benchmarks/bench_filled_start.py [--out reports/bench_filled_start.md]
+    python -m benchmarks.bench_filled_start [--out reports/bench_filled_start.md]
 
 Both are per process, so each side runs in a fresh one, ``ewb-ident`` through its entry
 point (``cli.main``), the two sides alternately, :data:`ROUNDS` times each, in one
@@ -33,10 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-import bench_fit  # noqa: E402
-import bench_speed  # noqa: E402
+from benchmarks import bench_fit, bench_speed
 
 ROOT = Path(__file__).resolve().parents[1]
 ROUNDS = 5

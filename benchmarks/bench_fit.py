@@ -1,9 +1,9 @@
 """Benchmark: whole-chain least squares, ewb-ident against the SciPy peer.
 
-    python benchmarks/bench_fit.py
+    python -m benchmarks.bench_fit
 
 The traces are issue 12's: clean, 4 s at 200 Hz, every channel, from an independent
-rig simulator (``tests/other_rig.py``, units drawn with :data:`SEED`, fixed before any
+rig simulator (``validation_rigs/other_rig.py``, units drawn with :data:`SEED`, fixed before any
 measurement): one open-loop apply-hold-release (``steps``) and one position-controlled
 apply closed at the logging rate (``position``), written to CSV with their sidecar.
 
@@ -39,15 +39,13 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(ROOT / "tests"))
-import scipy_peer  # noqa: E402
-from other_rig import draw_rig, record  # noqa: E402
-
+from benchmarks import scipy_peer  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.data.writers import write_trace  # noqa: E402
 from ewb_ident.inference.least_squares import _start_values, fit  # noqa: E402
+from validation_rigs.other_rig import draw_rig, record  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: The seed of the rig units the benchmark's traces come from.
 SEED = 12
@@ -78,7 +76,7 @@ class Report:
         ap = argparse.ArgumentParser(description=doc.splitlines()[0])
         ap.add_argument("--out", type=Path, default=ROOT / "reports" / f"{name}.md")
         self.out = ap.parse_args().out
-        self.title = f"# `python benchmarks/{name}.py`"
+        self.title = f"# `python -m benchmarks.{name}`"
         self.lines = [f"machine: {machine()}", ""]
 
     def row(self, text: str) -> None:

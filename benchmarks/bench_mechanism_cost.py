@@ -1,6 +1,6 @@
 """Benchmark: where an evaluation of a fit with mechanisms spends its time.
 
-    python benchmarks/bench_mechanism_cost.py [--out reports/bench_mechanism_cost.md]
+    python -m benchmarks.bench_mechanism_cost [--out reports/bench_mechanism_cost.md]
 
 A diagnosis of ``datasets/concealed/stiction.csv`` (a motor mechanism: the slowest
 kind) fits 13 mechanism sets; the solver evaluates each set's program, the weighted
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -33,15 +32,13 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).parent))
-
-import bench_fit  # noqa: E402
-
+from benchmarks import bench_fit  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.inference import augmented  # noqa: E402
 from ewb_ident.model import programs  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TRACE = ROOT / "datasets" / "concealed" / "stiction.csv"
 REPEATS = 9

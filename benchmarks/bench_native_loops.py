@@ -2,7 +2,7 @@
 1 MiB) against XLA's default (1 kB: a loop of more is a sequence of kernels dispatched
 one by one on every iteration).
 
-    python benchmarks/bench_native_loops.py [--out reports/bench_native_loops.md]
+    python -m benchmarks.bench_native_loops [--out reports/bench_native_loops.md]
 
 XLA reads the threshold once per process, when JAX starts its backend, so the two sides
 cannot share a process: each runs in a fresh one (one thread, no on-disk program cache),
@@ -26,9 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-import bench_fit  # noqa: E402
+from benchmarks import bench_fit
 
 ROOT = Path(__file__).resolve().parents[1]
 ROUNDS = 2
@@ -36,8 +34,7 @@ DEFAULT = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1
 
 _ONE_SIDE = """
 import json, sys, time
-sys.path.insert(0, {bench!r})
-import bench_mechanism_cost as m  # one thread; imports the package (its XLA flag)
+from benchmarks import bench_mechanism_cost as m  # one thread; imports the package (its XLA flag)
 import ewb_ident
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.posterior import sample
@@ -80,9 +77,7 @@ def _side(default_loops: bool) -> dict:
     env.pop("XLA_FLAGS", None)
     if default_loops:
         env["XLA_FLAGS"] = DEFAULT
-    script = _ONE_SIDE.format(
-        bench=str(Path(__file__).parent), steps=str(ROOT / "datasets" / "steps_200hz.csv")
-    )
+    script = _ONE_SIDE.format(steps=str(ROOT / "datasets" / "steps_200hz.csv"))
     proc = subprocess.run(
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, cwd=ROOT
     )

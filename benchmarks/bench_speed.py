@@ -1,12 +1,12 @@
 """Benchmark: every row of issue 12's speed table, measured in one run on this machine.
 
-    python benchmarks/bench_speed.py [--out reports/bench_speed.md]
+    python -m benchmarks.bench_speed [--out reports/bench_speed.md]
 
 Rows (each with its target):
 
 1. warm whole-chain fit against the SciPy peer in the same process, on issue 12's
    traces (clean, 4 s at 200 Hz, every channel, from the independent rig
-   ``tests/other_rig.py``: an open-loop apply and a position-controlled one; see
+   ``validation_rigs/other_rig.py``: an open-loop apply and a position-controlled one; see
    ``bench_fit.py``, which also says how the peer is set up);
 2. a cold ``ewb-ident fit`` of each (fresh process, empty program cache) against the
    peer's cold command; 3. the same with the cache filled by row 2;
@@ -40,10 +40,9 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).parent))
+from benchmarks import bench_fit
 
-import bench_fit  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 TRACE_FIT = ROOT / "datasets" / "steps_200hz.csv"  # the posterior's
 TRACE_200 = ROOT / "datasets" / "concealed" / "backlash.csv"

@@ -1,7 +1,7 @@
 """Timeline of one diagnosis: which candidate fits ran when, on which thread, and how
 busy the cores were.
 
-    python benchmarks/diagnosis_timeline.py TRACE [--cache DIR]
+    python -m benchmarks.diagnosis_timeline TRACE [--cache DIR]
 
 Runs :func:`ewb_ident.diagnosis.diagnose.diagnose` on ``TRACE`` in this process (with
 the program cache in ``DIR``: an empty folder gives a cold run, a second run with the

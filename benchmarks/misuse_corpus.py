@@ -1,7 +1,7 @@
 # ruff: noqa: E501 - the corpus is a table, one case a line
 """Misuse corpus: bad files, bad options, impossible requests, each through the CLI.
 
-    python benchmarks/misuse_corpus.py [--out reports/misuse.md]
+    python -m benchmarks.misuse_corpus [--out reports/misuse.md]
 
 Every case runs one ``ewb-ident`` command in this process (Typer's CliRunner, the same
 code path as the installed script after its entry point) in a fresh temporary folder,
@@ -212,7 +212,7 @@ def main() -> None:
     lines = [
         "# Misuse corpus",
         "",
-        "Command: `python benchmarks/misuse_corpus.py`",
+        "Command: `python -m benchmarks.misuse_corpus`",
         "",
         f"**{sum(r[-1] for r in rows)}/{len(rows)} cases behave** (expected exit code, no "
         f"traceback, nothing written when refused); tracebacks: {sum(r[3] for r in rows)}.",

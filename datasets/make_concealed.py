@@ -7,7 +7,7 @@ trace per catalog id, two with two effects, two clean ones: 3 s on another unit 
 rig than the nominal one, at 200 Hz (one at 500 Hz), open-loop steps or closed-loop
 position control. The effects are *concealed*: the baseline fit of the seed model passes
 the seed's acceptance (percent error below 10 % on force and torque), which
-``python studies/concealed_diagnoses.py`` checks and records in
+``python -m studies.concealed_diagnoses`` checks and records in
 ``reports/diagnosis/README.md`` beside each diagnosis.
 """
 

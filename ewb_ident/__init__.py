@@ -30,7 +30,7 @@ __version__ = "0.1.0"
 #: models' loops (the motor's sub-steps, with a Jacobian's tangents: a few kB an
 #: iteration) are each some 50-200 kernels of a few numbers, so dispatch dominated them:
 #: natively a mechanism's residuals and Jacobian run 1.1-7x faster and compile as fast
-#: (``python benchmarks/bench_native_loops.py``), their results equal up to round-off
+#: (``python -m benchmarks.bench_native_loops``), their results equal up to round-off
 #: (under 1e-11 relative on the shipped concealed diagnoses). Set through ``XLA_FLAGS``,
 #: which XLA reads once, when JAX starts its CPU backend: see :func:`_native_small_loops`.
 SMALL_LOOP_BYTES = 1 << 20
@@ -95,6 +95,7 @@ _PUBLIC = {
     "Trace": "data.trace",
     "TraceError": "data.trace",
     "InputError": "data.trace",
+    "EWBIdentError": "data.trace",
     "read_trace": "data.readers",
     "write_trace": "data.writers",
     "fit_corrected": "diagnosis.corrected",
@@ -110,6 +111,7 @@ __all__ = sorted(_PUBLIC)
 if TYPE_CHECKING:
     from ewb_ident.data.metrics import channel_metrics as channel_metrics
     from ewb_ident.data.readers import read_trace as read_trace
+    from ewb_ident.data.trace import EWBIdentError as EWBIdentError
     from ewb_ident.data.trace import InputError as InputError
     from ewb_ident.data.trace import Trace as Trace
     from ewb_ident.data.trace import TraceError as TraceError

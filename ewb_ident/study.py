@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.metrics import Z90
-from ewb_ident.data.trace import InputError, error_line
+from ewb_ident.data.trace import EWBIdentError, InputError, error_line
 from ewb_ident.rig import VARIED_PARAMS
 
 
@@ -414,7 +414,7 @@ def run_script(study: Study, out_dir: Path, progress=None):
     return out
 
 
-class ScriptError(RuntimeError):
+class ScriptError(EWBIdentError, RuntimeError):
     """A study script that raised or returned the wrong types: the script's problem,
     one line naming its file and line (the CLI exits 3)."""
 
@@ -472,7 +472,7 @@ CONNECT_TIMEOUT_S = 5.0
 WORKER_TIMEOUT_S = 120.0
 
 
-class ClusterError(RuntimeError):
+class ClusterError(EWBIdentError, RuntimeError):
     """A Dask scheduler that does not answer, or has no worker in time."""
 
 

@@ -22,9 +22,9 @@ two agree.
 
 Usage (from the repository root)::
 
-    python studies/calibration.py --stage chain --repeats 100
-    python studies/calibration.py --stage force,torque --repeats 200
-    python studies/calibration.py --report-only
+    python -m studies.calibration --stage chain --repeats 100
+    python -m studies.calibration --stage force,torque --repeats 200
+    python -m studies.calibration --report-only
 
     ewb-ident study studies/calibration.toml --out reports/calibration
 

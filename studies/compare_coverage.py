@@ -1,6 +1,6 @@
 """Do the 90 % intervals of a hardware change hold the true change? (issue 11, item 4)
 
-Each case draws a fresh unit of the independent rig (``tests/other_rig.py``: wide motor,
+Each case draws a fresh unit of the independent rig (``validation_rigs/other_rig.py``: wide motor,
 gap, bell and mu ranges, pad radius 0.10-0.25 m), records it before and after a planted
 change (pad change: c by +20...+60 um, b by up to +-8 %, mu by up to +-5 %; a warm motor:
 R by 0...+20 %), with its own profile (open-loop steps, PID position control closed at
@@ -11,7 +11,7 @@ interval, the row holds the true change (zero for an unchanged one) and whether 
 identified combinations replaced L, kb and M without current, used 20261126) is this
 study's own.
 
-    python studies/compare_coverage.py [N] [--seed S] [--out reports/compare_coverage]
+    python -m studies.compare_coverage [N] [--seed S] [--out reports/compare_coverage]
 
 Rows are appended to ``OUT/cases_SEED.csv`` after each case, so a run resumes;
 ``OUT/README.md`` holds coverage per parameter and by channel subset.
@@ -23,19 +23,16 @@ import argparse
 import csv
 import dataclasses
 import io
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ewb_ident.data.outputs import write_text
+from ewb_ident.model import programs
+from validation_rigs.other_rig import draw_rig, record
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
-from other_rig import draw_rig, record  # noqa: E402
-
-from ewb_ident.data.outputs import write_text  # noqa: E402
-from ewb_ident.model import programs  # noqa: E402
 
 SEED = 20261128
 OUT = ROOT / "reports" / "compare_coverage"
@@ -103,7 +100,7 @@ def report(rows: list[dict], n_cases: int, seed: int = SEED) -> str:
     lines = [
         "# Coverage of the 90 % intervals of a hardware change",
         "",
-        f"Command: `python studies/compare_coverage.py {n_cases} --seed {seed}` "
+        f"Command: `python -m studies.compare_coverage {n_cases} --seed {seed}` "
         f"({df['case'].nunique()} fresh pairs of the independent rig). A planted pad change "
         "(c, b, mu) and a warm motor (R); every other parameter unchanged (true change 0). "
         "Without current the motor's change is given for its identified gain and lag.",

@@ -1,6 +1,6 @@
 """Diagnose every shipped concealed-effect trace and tabulate the outcome.
 
-Run from the repository root: ``python studies/concealed_diagnoses.py``. For each
+Run from the repository root: ``python -m studies.concealed_diagnoses``. For each
 ``datasets/concealed/NAME.csv`` it writes ``reports/diagnosis/NAME/`` (``diagnosis.json``
 and figures, exactly what ``ewb-ident diagnose`` writes) and then
 ``reports/diagnosis/README.md``: the planted effects beside what the diagnosis found,
@@ -56,7 +56,7 @@ def main() -> None:
     lines = [
         "# Diagnoses of the shipped concealed-effect traces",
         "",
-        "Produced by `python studies/concealed_diagnoses.py` from `datasets/concealed/` "
+        "Produced by `python -m studies.concealed_diagnoses` from `datasets/concealed/` "
         "(made by `python datasets/make_concealed.py`). Each folder holds `diagnosis.json` "
         "and the figures `ewb-ident diagnose` writes. *Baseline %* is the seed model's "
         "whole-chain percent error (relative L2) on force / torque: below 10 % the seed's "

@@ -1,4 +1,4 @@
-"""Whole-chain fit convergence on fresh units of the independent rig (tests/other_rig.py).
+"""Whole-chain fit convergence on fresh units of the independent rig (validation_rigs/other_rig.py).
 
 Each case draws a new rig unit over wide ranges (motor gain and time constant, armature
 L/R, gap polynomial, bell, rated force, pad radius 0.10-0.25 m, mu), a profile
@@ -7,7 +7,7 @@ staircase), a rate (100 Hz to 1 kHz) and a channel subset, records a clean trace
 fits the whole chain from the voltage with the defaults. Nothing here was used to tune
 the fit: the seed (20261124) is not the tests' (1000 + k).
 
-    python studies/convergence_other_rigs.py [N] [--seed S] [--out reports/convergence]
+    python -m studies.convergence_other_rigs [N] [--seed S] [--out reports/convergence]
 
 Writes ``OUT/results.csv`` and ``OUT/README.md`` (success by channel subset, profile and
 rate; a case succeeds when the fit converged, passes its acceptance, fits the force to
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -26,13 +25,11 @@ import jax
 import numpy as np
 import pandas as pd
 
+from ewb_ident.data.outputs import write_text
+from ewb_ident.inference.least_squares import fit
+from validation_rigs.other_rig import Sensors, draw_rig, record
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
-from other_rig import Sensors, draw_rig, record  # noqa: E402
-
-from ewb_ident.data.outputs import write_text  # noqa: E402
-from ewb_ident.inference.least_squares import fit  # noqa: E402
 
 SUBSETS = {
     "all": (),
@@ -133,8 +130,8 @@ def main() -> None:
     z = df[["a_z", "b_z", "c_z"]].astype(float).abs()
     text = f"""# Whole-chain fit on fresh units of an independent rig
 
-Command: `python studies/convergence_other_rigs.py {args.n} --seed {args.seed}`
-(traces from `tests/other_rig.py`, a SciPy simulator written separately from the
+Command: `python -m studies.convergence_other_rigs {args.n} --seed {args.seed}`
+(traces from `validation_rigs/other_rig.py`, a SciPy simulator written separately from the
 model and from `ewb_ident/rig/`; clean recordings of the seed chain).
 
 A case succeeds when the fit converged, passes its acceptance (`status` ok), fits the

@@ -1,7 +1,7 @@
 """Whole-chain fit on traces of a third rig simulator, read from files as a user's are.
 
-``studies/third_rig.py`` was written by a separate author who saw only the trace format
-and the seed model, never this package or ``tests/other_rig.py``. It varies what real
+``validation_rigs/third_rig.py`` was written by a separate author who saw only the trace format
+and the seed model, never this package or ``validation_rigs/other_rig.py``. It varies what real
 rigs vary: motor constants, gap polynomial, bell (b 2.0-3.8, F_rt 2.5-5 kN), friction,
 pad radius 0.10-0.25 m, rate 100 Hz-1 kHz, a time offset, start angle, open-loop steps,
 PID position control, staircases, force control (PI) and chirps closed at the logging
@@ -12,7 +12,7 @@ Each case is written to CSV + sidecar, read with :func:`ewb_ident.data.readers.r
 and fitted with the defaults (as ``ewb-ident fit TRACE`` does). Nothing here tunes the
 fit: every run draws fresh cases from ``--seed``.
 
-    python studies/convergence_third_rig.py [N] [--seed S] [--out reports/convergence_third]
+    python -m studies.convergence_third_rig [N] [--seed S] [--out reports/convergence_third]
 
 A case succeeds when the fit converged with status ``ok``, the force (or, without force,
 the torque) is fitted within 1.5x its true sensor noise (white noise and quantisation),
@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -41,16 +40,14 @@ from pathlib import Path
 import jax
 import pandas as pd
 
+from ewb_ident.data.outputs import write_text
+from ewb_ident.data.readers import read_trace
+from ewb_ident.diagnosis.diagnose import diagnose
+from ewb_ident.inference.least_squares import fit
+from ewb_ident.model import programs
+from validation_rigs import third_rig
+
 ROOT = Path(__file__).resolve().parent
-sys.path.insert(0, str(ROOT))
-
-import third_rig  # noqa: E402
-
-from ewb_ident.data.outputs import write_text  # noqa: E402
-from ewb_ident.data.readers import read_trace  # noqa: E402
-from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
-from ewb_ident.inference.least_squares import fit  # noqa: E402
-from ewb_ident.model import programs  # noqa: E402
 
 
 def _floor(truth: dict, ch: str) -> float:
@@ -177,8 +174,8 @@ def main() -> None:
     flag = " --diagnose" if args.diagnose else ""
     text = f"""# Whole-chain fit on a third rig simulator (files read as a user's are)
 
-Command: `python studies/convergence_third_rig.py {args.n} --seed {args.seed}{flag}`
-(traces from `studies/third_rig.py`, written by a separate author from the trace format
+Command: `python -m studies.convergence_third_rig {args.n} --seed {args.seed}{flag}`
+(traces from `validation_rigs/third_rig.py`, written by a separate author from the trace format
 and the seed model alone; see the script's docstring for the criteria).
 
 **{int(df["success"].sum())}/{len(df)} cases succeeded**: {int(quiet["success"].sum())}/{len(quiet)}
@@ -217,7 +214,7 @@ def _diagnosis_section(df: pd.DataFrame, args) -> str:
     ``none``; with noise on the logged voltage the model's input is not what the motor
     saw, and ``unexplained`` (located in the motor stage or the chain) is honest too."""
     lines = ["", "## Diagnosis of the same (clean) traces", ""]
-    lines += [f"`python studies/convergence_third_rig.py {args.n} --seed {args.seed} --diagnose`"]
+    lines += [f"`python -m studies.convergence_third_rig {args.n} --seed {args.seed} --diagnose`"]
     lines += ["", "| voltage log | none | unexplained | found | median s | max s |"]
     lines += ["|---|---|---|---|---|---|"]
     for label, sel in (("exact", ~df["voltage_noise"]), ("noisy", df["voltage_noise"])):

@@ -1,7 +1,7 @@
 """Do the intervals of a, b, c, mu hold once the diagnosed physics is added? (issue 10)
 
-    python studies/corrected_calibration.py [--per-id 10] [--shard K/N] [--seed S]
-    python studies/corrected_calibration.py --report-only
+    python -m studies.corrected_calibration [--per-id 10] [--shard K/N] [--seed S]
+    python -m studies.corrected_calibration --report-only
 
 For every catalog id, ``--per-id`` fresh concealed traces are drawn exactly as the
 diagnosis accuracy study draws its single-effect cases (``diagnosis_accuracy.make_case``:
@@ -25,24 +25,21 @@ import argparse
 import csv
 import io
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ewb_ident.data.metrics import Z90
+from ewb_ident.data.outputs import write_text
+from ewb_ident.model import programs
+from studies import diagnosis_accuracy as da
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import diagnosis_accuracy as da  # noqa: E402
-
-from ewb_ident.data.outputs import write_text  # noqa: E402
-from ewb_ident.model import programs  # noqa: E402
 
 SEED = 20261125
 OUT = ROOT / "reports" / "corrected_calibration"
 PARAMS = ("a", "b", "c", "mu")
-Z90 = 1.6448536269514722
 
 
 def plan(per_id: int) -> list[str]:
@@ -113,7 +110,7 @@ def report(rows: list[dict], per_id: int, seed: int = SEED) -> str:
     lines = [
         "# Interval coverage of a, b, c, mu: baseline against corrected model",
         "",
-        f"Command: `python studies/corrected_calibration.py --per-id {per_id}"
+        f"Command: `python -m studies.corrected_calibration --per-id {per_id}"
         + (f" --seed {seed}" if seed != SEED else "")
         + f"` ({len(df)} fresh concealed traces, seed {seed}; nominal 90 % intervals are "
         "estimate +- 1.645 least-squares standard errors, the larger of the white-residual "

@@ -1,6 +1,6 @@
 """Diagnose every shipped trace with each optional channel dropped in turn: no crash.
 
-    python studies/diagnose_channel_subsets.py [--shard K/N] [--out reports/diagnosis_subsets]
+    python -m studies.diagnose_channel_subsets [--shard K/N] [--out reports/diagnosis_subsets]
 
 For every trace under ``datasets/`` (the clean datasets and the concealed ones) and each
 of ``current_A``, ``disc_speed_rad_s`` and ``torque_Nm``, the trace without that column
@@ -108,7 +108,7 @@ def main() -> None:
     lines = [
         "# Diagnosis with each optional channel dropped",
         "",
-        "Command: `python studies/diagnose_channel_subsets.py` (every trace under "
+        "Command: `python -m studies.diagnose_channel_subsets` (every trace under "
         "`datasets/`, each of current_A, disc_speed_rad_s, torque_Nm dropped in turn).",
         "",
         f"**{len(ran) - len(crashes)}/{len(ran)} diagnoses completed without an error** "

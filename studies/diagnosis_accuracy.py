@@ -26,9 +26,9 @@ without the effect): effects with visibility well below 1 cannot be seen by any 
 Usage (from the repository root; results are appended to
 ``reports/diagnosis_accuracy/cases.csv`` after each case, so a run resumes)::
 
-    python studies/diagnosis_accuracy.py                 # every case, then the report
-    python studies/diagnosis_accuracy.py --shard 0/2     # half of them (run two at once)
-    python studies/diagnosis_accuracy.py --report-only
+    python -m studies.diagnosis_accuracy                 # every case, then the report
+    python -m studies.diagnosis_accuracy --shard 0/2     # half of them (run two at once)
+    python -m studies.diagnosis_accuracy --report-only
     ewb-ident study studies/diagnosis_accuracy.toml      # the same, with a progress bar
 """
 
@@ -526,7 +526,7 @@ def summarise(rows: list[dict[str, str]], seed: int = SEED, widen: bool = False)
     lines = [
         "# Diagnosis accuracy on freshly generated cases",
         "",
-        "Produced by `python studies/diagnosis_accuracy.py` (or `ewb-ident study "
+        "Produced by `python -m studies.diagnosis_accuracy` (or `ewb-ident study "
         "studies/diagnosis_accuracy.toml`); the case tables are `cases*.csv` (one per "
         "shard). How the cases are "
         "drawn is in the script's docstring: rig units varied by 5 %, steps/position/"

@@ -2,7 +2,7 @@
 on the code after (the former from a worktree of the earlier commit, e.g.
 ``git worktree add ../before d7596c1`` and ``PYTHONPATH=../before python ...``).
 
-    python studies/regression.py diagnose --out DIR [--against EARLIER_DIR]
+    python -m studies.regression diagnose --out DIR [--against EARLIER_DIR]
         Diagnose every shipped concealed trace (``datasets/concealed``) and write each
         ``diagnosis.json``; with ``--against``, compare them field by field with an
         earlier run's and print every number that differs by more than 1e-4 relative
@@ -10,12 +10,12 @@ on the code after (the former from a worktree of the earlier commit, e.g.
 
         ``--compare-only`` compares the ``diagnosis.json`` files already in DIR.
 
-    python studies/regression.py fits BEFORE.csv AFTER.csv
+    python -m studies.regression fits BEFORE.csv AFTER.csv
         Compare two ``results.csv`` of ``convergence_third_rig.py`` or
         ``convergence_other_rigs.py`` run with the same seed: successes, and the largest
         change of each relative error.
 
-    python studies/regression.py accuracy BEFORE_DIR AFTER_DIR
+    python -m studies.regression accuracy BEFORE_DIR AFTER_DIR
         Compare two runs of ``diagnosis_accuracy.py`` with the same seed and options
         (their ``cases*.csv``): every field of every case both ran that differs (numbers
         by more than 1e-3 relative; the seconds left out), and the summed seconds.

@@ -1,7 +1,7 @@
 """(f) Reproduction of the seed paper: its Table 2, its input, its Figures 8, 12 and 13.
 
 Run: ``ewb-ident study studies/seed_reproduction.toml --out reports/seed_reproduction``
-(or ``python studies/seed_reproduction.py reports/seed_reproduction``).
+(or ``python -m studies.seed_reproduction reports/seed_reproduction``).
 
 The paper's recordings are not available, so the seed's experiment is re-created on the
 synthetic rig with the seed's Table 2 values (b read as 2.82) and its input (open-loop

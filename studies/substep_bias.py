@@ -1,6 +1,6 @@
 """How the motor's sub-step length moves a diagnosis's fitted parameters.
 
-    python studies/substep_bias.py [TRACE] [--steps 2.5e-4,5e-4,1e-3]
+    python -m studies.substep_bias [TRACE] [--steps 2.5e-4,5e-4,1e-3]
 
 Diagnoses ``TRACE`` (default: the shipped concealed stiction trace) once per longest
 sub-step of the motor integration with mechanisms

@@ -102,9 +102,9 @@ def test_without_current_the_motor_change_is_given_for_what_is_identified():
     M are effective values there (R held), so their 'changes' would be R's in disguise.
     The comparison gives the gain and lag instead, and their intervals hold the truth."""
     import numpy as np
-    from other_rig import draw_rig, record
 
     from ewb_ident.inference.fit_result import motor_combination_values
+    from validation_rigs.other_rig import draw_rig, record
 
     rng = np.random.default_rng([5, 1])
     old = draw_rig(rng)
@@ -134,11 +134,7 @@ def test_a_small_but_real_mu_change_is_not_shared_into_the_bell():
     30 standard errors. The joint refit shared it, so F_rt absorbed it: a change of
     -34 N with a +-3 N interval, where F_rt did not change. Shared now only are
     parameters whose change is consistent with none."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
-    import compare_coverage
+    from studies import compare_coverage
 
     rows = {r["param"]: r for r in compare_coverage.run_case(9, seed=20261238)}
     assert rows["F_rt"]["true_delta"] == 0.0

@@ -395,11 +395,7 @@ def test_a_rival_is_promoted_once_per_stage_set():
     catalog rival, the second time after the first had replaced it in the list. Now
     one rival per stage set: both planted effects are named and no other catalog effect
     (a generic correction may remain at the force stage)."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
-    import diagnosis_accuracy
+    from studies import diagnosis_accuracy
 
     trace, *_ = diagnosis_accuracy.make_case(
         35, ("friction_speed", "backlash"), seed=20261218, widen=True
@@ -449,11 +445,7 @@ def test_two_effects_that_show_in_the_chain_only_together_are_both_named():
     current): backlash alone did not improve the whole chain run from the voltage, so it
     was dropped before hysteresis was confirmed, and a generic correction took its
     place. Tried again on top of the hysteresis, it is confirmed."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
-    import diagnosis_accuracy as da
+    from studies import diagnosis_accuracy as da
 
     trace, *_ = da.make_case(7, ("force_hysteresis", "backlash"), seed=20261227, widen=True)
     res = diagnose(trace)

@@ -370,6 +370,7 @@ def test_a_learned_coefficients_posterior_does_not_depend_on_its_size():
     distilled size with the same prior, so it still centres on the refitted term."""
     from ewb_ident.diagnosis.corrected import fit_corrected
     from ewb_ident.diagnosis.discovery import LearnedSpec
+    from ewb_ident.inference.log_posterior import SamplerSettings
     from ewb_ident.inference.posterior import sample_corrected
 
     basis = json.loads(json_text(damped_diagnosis().findings[0].basis))
@@ -378,7 +379,8 @@ def test_a_learned_coefficients_posterior_does_not_depend_on_its_size():
     spec = LearnedSpec.from_json(basis, "test")
     trace = damped_force_trace()
     cf = fit_corrected(trace, [], [spec])
-    post = sample_corrected(trace, cf, n_steps=300, max_steps=300, seed=1)
+    settings = SamplerSettings(n_steps=300, max_steps=300, seed=1)
+    post = sample_corrected(trace, cf, settings=settings)
     (name,) = [n for n in post.names if n.startswith("learned[")]
     st = post.stats[name]
     assert st["hdi_low"] <= 1.0 <= st["hdi_high"] and st["hdi_high"] - st["hdi_low"] < 0.2

@@ -244,6 +244,51 @@ def test_serial_errors_do_not_depend_on_how_far_a_trace_is_padded():
         np.testing.assert_array_equal(got, want)
 
 
+def test_one_function_gives_standard_errors_and_none_only_on_undetermined_directions():
+    """``parameter_uncertainty`` is the one computation of standard errors (the augmented
+    fits' own copy is gone). On a Jacobian with two proportional columns and one without
+    slope, the three parameters on those undetermined directions get None and the other
+    two keep the errors of the same fit with the duplicate and the flat column left out
+    (the same residual variance, per degree of freedom)."""
+    from ewb_ident.inference import augmented
+    from ewb_ident.inference.uncertainty import parameter_uncertainty
+    from ewb_ident.model.params import PARAMS
+
+    assert not hasattr(augmented, "_stderr")
+    assert not hasattr(augmented, "serial_sd")
+    rng = np.random.default_rng(7)
+    n = 500
+    A = rng.standard_normal((n, 3))
+    J = np.column_stack([A[:, 0], A[:, 1], -2.0 * A[:, 1], np.zeros(n), A[:, 2] + A[:, 0]])
+    r = rng.standard_normal(n)
+    u = np.linspace(-0.3, 0.4, 5)
+    infos = [PARAMS[name] for name in ("R", "L", "kb", "M", "v")]
+    for segments in (None, [(1, n)]):
+        unc = parameter_uncertainty(J, r, u, infos, segments)
+        for errors in (unc.stderr, unc.stderr_white):
+            assert [e is None for e in errors] == [False, True, True, True, False]
+        assert np.isinf(unc.sd_u[1:4]).all() and np.isfinite(unc.sd_u[[0, 4]]).all()
+        assert unc.condition_number == float("inf")
+    kept = [0, 1, 4]
+    full = parameter_uncertainty(J, r, u, infos)
+    part = parameter_uncertainty(J[:, kept], r, u[kept], [infos[k] for k in kept])
+    dof = np.sqrt((n - len(kept)) / (n - len(infos)))  # the same rss over fewer dof
+    for j, k in ((0, 0), (4, 2)):
+        np.testing.assert_allclose(full.stderr[j], part.stderr[k] * dof, rtol=1e-9)
+    # A determined Jacobian: every parameter has its error, as before.
+    assert None not in parameter_uncertainty(A, r, u[:3], infos[:3], [(1, n)]).stderr
+
+
+def test_z90_is_the_normal_quantile_of_the_interval_probability():
+    from scipy.special import ndtri
+
+    from ewb_ident.data.metrics import INTERVAL_PROB, Z90
+    from ewb_ident.inference.log_posterior import SamplerSettings
+
+    assert Z90 == float(ndtri(0.5 + INTERVAL_PROB / 2))
+    assert SamplerSettings().hdi_prob == INTERVAL_PROB
+
+
 def test_standard_errors_widen_where_the_model_leaves_physics_out():
     """White residuals: the robust errors are the white ones. A concealed hysteresis
     (the model leaves it out, the residual runs for hundreds of samples): the white

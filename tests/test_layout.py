@@ -189,3 +189,30 @@ def test_no_module_grows_past_the_size_the_layout_aims_for():
     for name, path in _modules():
         n = len(path.read_text(encoding="utf-8").splitlines())
         assert n <= OVER.get(name, MAX_LINES), f"{name}: {n} lines; split it"
+
+
+def test_validation_rigs_stand_apart_and_nothing_edits_sys_path():
+    """The independent rigs are a package of their own (``validation_rigs/``, installed
+    beside the tool): the tool never imports them, and the tests, studies and benchmarks
+    reach them, and each other, by imports (``from studies import ...``), never by
+    editing ``sys.path``."""
+    root = PACKAGE.parent
+    rigs = root / "validation_rigs"
+    names = {"other_rig", "third_rig", "uncatalogued_rig"}
+    assert {p.stem for p in rigs.glob("*.py")} >= names
+    for folder in ("tests", "studies", "benchmarks"):
+        assert (root / folder / "__init__.py").exists(), folder
+        assert not [n for n in names if (root / folder / f"{n}.py").exists()], folder
+    reach = [
+        f"{p.relative_to(root)}: imports validation_rigs"
+        for p in PACKAGE.rglob("*.py")
+        if "validation_rigs" in p.read_text(encoding="utf-8")
+    ]
+    edits = [
+        f"{p.relative_to(root)}:{k + 1}"
+        for folder in ("tests", "studies", "benchmarks", "validation_rigs")
+        for p in sorted((root / folder).rglob("*.py"))
+        for k, line in enumerate(p.read_text(encoding="utf-8").splitlines())
+        if "sys.path." in line and p.name != "test_layout.py"
+    ]
+    assert not reach and not edits, reach + edits

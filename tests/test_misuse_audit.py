@@ -622,10 +622,7 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(rig, tmp_path, monkeypatch):
 
 
 def _corpus():
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
-    import misuse_corpus
+    from benchmarks import misuse_corpus
 
     return misuse_corpus
 
@@ -797,3 +794,27 @@ def test_any_fit_options_give_a_result_or_one_line(rig, stage, fix, free, r_eff,
             assert not [p for p in Path(folder).rglob("*") if p.is_file()], argv
         else:
             assert (Path(target) / "fit.json").is_file(), argv
+
+
+def test_every_error_the_tool_raises_derives_from_one_base():
+    """``EWBIdentError`` is the base of every public error class of the package; the
+    errors of input stay ``ValueError``\\ s (``InputError``), the study runner's stay
+    ``RuntimeError``\\ s."""
+    import ast
+    import importlib
+
+    root = Path(ei.__file__).parent
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        module = ".".join(path.relative_to(root.parent).with_suffix("").parts)
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.ClassDef) and node.name.endswith("Error"):
+                if not node.name.startswith("_"):
+                    found.append(getattr(importlib.import_module(module), node.name))
+    assert len(found) >= 13, found
+    assert [c for c in found if not issubclass(c, ei.EWBIdentError)] == []
+    inputs = [c for c in found if issubclass(c, ei.InputError)]
+    assert len(inputs) >= 11 and all(issubclass(c, ValueError) for c in inputs)
+    others = [c for c in found if c not in inputs and c is not ei.EWBIdentError]
+    assert {c.__name__ for c in others} == {"ScriptError", "ClusterError"}
+    assert all(issubclass(c, RuntimeError) for c in others)

@@ -1,6 +1,6 @@
 """The whole-chain fit on somebody else's rig: every channel subset, profile and rate.
 
-Traces come from ``tests/other_rig.py``, a simulator written separately from the model
+Traces come from ``validation_rigs/other_rig.py``, a simulator written separately from the model
 and from ``ewb_ident/rig/``, whose units are drawn over wide ranges (not near the
 seed's values), with closed-loop position control at the logging rate, actuator
 saturation and quantised sensors. Each cell draws its own rig unit (a fresh seed per
@@ -14,9 +14,9 @@ import math
 
 import numpy as np
 import pytest
-from other_rig import Sensors, draw_rig, record
 
 from ewb_ident.inference.least_squares import fit
+from validation_rigs.other_rig import Sensors, draw_rig, record
 
 SUBSETS = {
     "all": (),

@@ -26,7 +26,7 @@ from ewb_ident import rig
 from ewb_ident.cli import app
 from ewb_ident.data.outputs import json_text
 from ewb_ident.data.trace import Trace
-from ewb_ident.inference.log_posterior import SampleError
+from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
 from ewb_ident.inference.posterior import sample
 from ewb_ident.inference.posterior_result import PosteriorResult
 from ewb_ident.inference.priors import Prior, PriorError, load_priors, parse_prior
@@ -140,17 +140,41 @@ def test_sampler_reproduces_an_analytic_posterior(force_torque):
 
 
 def test_same_seed_same_summary_other_seed_differs(force_torque):
+    """The same settings as one ``SamplerSettings`` or as keywords: the same run."""
     trace, _ = force_torque
-    kw = dict(stage=("force", "torque"), n_steps=300, max_steps=300)
-    one = json_text(sample(trace, seed=4, **kw).to_summary_json())
-    two = json_text(sample(trace, seed=4, **kw).to_summary_json())
-    other = json_text(sample(trace, seed=5, **kw).to_summary_json())
+    settings = SamplerSettings(n_steps=300, max_steps=300, seed=4)
+    stage = ("force", "torque")
+    one = sample(trace, stage=stage, settings=settings)
+    two = sample(trace, stage=stage, n_steps=300, max_steps=300, seed=4)
+    other = sample(trace, stage=stage, settings=settings, seed=5)
+    one, two, other = (json_text(r.to_summary_json()) for r in (one, two, other))
     assert one == two and one != other
+
+
+def test_sampler_settings_are_one_object_and_keywords_only_override_it(force_torque):
+    """``sample`` and ``sample_corrected`` take a ``SamplerSettings``; no setting is
+    a parameter of theirs, a keyword replaces a field, and a name that is no field is
+    refused as Python refuses an unknown keyword."""
+    import inspect
+
+    from ewb_ident.inference.posterior import sample_corrected
+
+    fields = {f.name for f in dataclasses.fields(SamplerSettings)}
+    for function in (sample, sample_corrected):
+        params = inspect.signature(function).parameters
+        assert "settings" in params and not fields & set(params), function.__name__
+    base = SamplerSettings(n_steps=300, seed=4)
+    assert SamplerSettings.of(base, {"seed": 5}, "sample") == SamplerSettings(n_steps=300, seed=5)
+    assert SamplerSettings.of(None, {}, "sample") == SamplerSettings()
+    trace, _ = force_torque
+    with pytest.raises(TypeError, match=r"sample\(\) got an unexpected keyword argument 'n_step'"):
+        sample(trace, stage="force", n_step=300)
 
 
 def test_short_run_is_not_converged_and_says_what_to_do(force_torque):
     trace, _ = force_torque
-    res = sample(trace, stage=("force", "torque"), n_steps=60, max_steps=60, seed=0)
+    settings = SamplerSettings(n_steps=60, max_steps=60, seed=0)
+    res = sample(trace, stage=("force", "torque"), settings=settings)
     assert res.converged is False
     doc = res.to_summary_json()
     assert doc["converged"] is False
@@ -160,7 +184,7 @@ def test_short_run_is_not_converged_and_says_what_to_do(force_torque):
 
 def test_mu_without_torque_is_reported_as_prior_and_said_so(force_torque):
     trace, _ = force_torque
-    res = sample(trace, stage="force", n_steps=200, max_steps=200, seed=0)
+    res = sample(trace, stage="force", settings=SamplerSettings(n_steps=200, max_steps=200))
     mu = res.stats["mu"]
     assert mu["source"] == "prior" and mu["ess"] is None and mu["r_hat"] is None
     assert 0.3 < mu["mean"] < 0.5 and mu["hdi_high"] - mu["hdi_low"] > 0.4  # Beta(2, 3)

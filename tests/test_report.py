@@ -110,12 +110,15 @@ def test_report_with_a_finding_shows_both_models_and_the_banner(hysteresis):
     beside the baseline's with the corrected posterior's HDIs, the truth inside them."""
     import json
 
+    from ewb_ident.inference.log_posterior import SamplerSettings
     from ewb_ident.inference.posterior import sample_corrected
 
     path, trace, result, diagnosis = hysteresis
     assert diagnosis.corrected_mechanisms() == ["force_hysteresis"]
     assert diagnosis.corrected.mechanisms == ("force_hysteresis",)  # the posterior's start
-    cpost = sample_corrected(trace, corrected=diagnosis.corrected, n_steps=800, seed=2)
+    cpost = sample_corrected(
+        trace, corrected=diagnosis.corrected, settings=SamplerSettings(n_steps=800, seed=2)
+    )
     page, _ = build_report([trace], result, diagnosis=diagnosis, corrected_posterior=cpost)
     assert "rejects the baseline model" in page and "2b. Corrected model" in page
     assert "force_hysteresis.h" in page and "corrected 90 %" in page
@@ -158,11 +161,13 @@ def test_report_command_writes_a_page(tmp_path):
 
 
 def test_report_renders_the_posterior_section():
+    from ewb_ident.inference.log_posterior import SamplerSettings
     from ewb_ident.inference.posterior import sample
 
     trace = read_trace(DATA / "staircase_200hz.csv")
     result = fit(trace, stage="force")
-    post = sample(trace, stage="force", n_steps=300, max_steps=300, seed=1)
+    settings = SamplerSettings(n_steps=300, max_steps=300, seed=1)
+    post = sample(trace, stage="force", settings=settings)
     page, figures = build_report([trace], result, posterior=post)
     assert "5. Posterior (MCMC)" in page and "pair.png" in figures
     assert "posterior mean" in page and "90 % interval" in page

@@ -88,11 +88,7 @@ def test_every_drawn_current_limit_acts():
     position-controlled apply's peak current in 4 of its 8 cases of seed 20261218
     (visibility 0: nothing to find, counted as misses). Drawn against the case's own
     peak, every case's limit changes the recording by many times the noise."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
-    import diagnosis_accuracy as da
+    from studies import diagnosis_accuracy as da
 
     plan = da.case_plan()
     cases = [i for i, (k, ids) in enumerate(plan) if k == "single" and ids == ("current_limit",)]

@@ -1,21 +1,16 @@
-"""Regression cases from the third rig simulator (``studies/third_rig.py``, written by a
+"""Regression cases from the third rig simulator (``validation_rigs/third_rig.py``, written by a
 separate author from the trace format and the seed model alone), written to files and
 read back as a user's recordings are. Each case once failed; the study
 ``studies/convergence_third_rig.py`` measures the fit on fresh cases of this rig."""
 
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "studies"))
-
-import third_rig  # noqa: E402
-
-from ewb_ident.data.readers import read_trace  # noqa: E402
-from ewb_ident.inference.least_squares import fit  # noqa: E402
+from ewb_ident.data.readers import read_trace
+from ewb_ident.inference.least_squares import fit
+from validation_rigs import third_rig
 
 
 def _case(tmp_path, seed, k):

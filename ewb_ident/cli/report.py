@@ -59,9 +59,9 @@ def report(
     from ewb_ident.reporting.html import build_report, write_report
     from ewb_ident.reporting.summaries import headline
 
-    sampler = dict(n_steps=steps, min_ess=min_ess, seed=seed)
+    sampler = SamplerSettings(n_steps=steps, min_ess=min_ess, seed=seed)
     try:  # before the traces are read, in the options' own spelling
-        SamplerSettings(**sampler).check(names={"n_steps": "--steps", "min_ess": "--min-ess"})
+        sampler.check(names={"n_steps": "--steps", "min_ess": "--min-ess"})
     except SampleError as err:
         fail(str(err))
     post = diag = None
@@ -76,7 +76,7 @@ def report(
             if bar is not None:
                 bar.start()
             try:
-                post = run_sample(trs, stage=stage, progress=progress, **sampler)
+                post = run_sample(trs, stage=stage, settings=sampler, progress=progress)
             finally:
                 if bar is not None:
                     bar.stop()
@@ -117,9 +117,10 @@ def report(
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
 
 
-def _corrected_posterior(trs, diag, posterior: bool, stage: str, sampler: dict):
+def _corrected_posterior(trs, diag, posterior: bool, stage: str, sampler):
     """The corrected model's posterior when the diagnosis found catalog physics or a
-    learned term, else (None, why not); None, None when there is nothing to correct."""
+    learned term, else (None, why not); None, None when there is nothing to correct.
+    ``sampler``: the :class:`~ewb_ident.inference.log_posterior.SamplerSettings`."""
     if diag is None or diag.corrected is None:
         return None, None
     if not posterior:
@@ -137,7 +138,8 @@ def _corrected_posterior(trs, diag, posterior: bool, stage: str, sampler: dict):
         if bar is not None:
             bar.start()
         try:
-            return sample_corrected(trs[0], diag.corrected, progress=progress, **sampler), None
+            post = sample_corrected(trs[0], diag.corrected, settings=sampler, progress=progress)
+            return post, None
         finally:
             if bar is not None:
                 bar.stop()

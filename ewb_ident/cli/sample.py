@@ -117,7 +117,7 @@ def sample(
 
     if integrator not in ("exponential", "heun"):
         fail(f"--integrator must be exponential or heun, got {integrator!r}")
-    settings = dict(
+    settings = SamplerSettings(
         noise_model=noise,
         n_walkers=walkers,
         n_steps=steps,
@@ -129,7 +129,7 @@ def sample(
         seed=seed,
     )
     try:  # before the traces are read, in the options' own spelling
-        SamplerSettings(**settings).check(names=_OPTION_NAMES)
+        settings.check(names=_OPTION_NAMES)
     except SampleError as err:
         fail(str(err))
     stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
@@ -142,10 +142,10 @@ def sample(
             traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check, r_eff
         )
         # The memory the settings need, from the traces' length, in the options' spelling.
-        SamplerSettings(**settings).check(names=_OPTION_NAMES, n_samples=sum(t.n for t in trs))
+        settings.check(names=_OPTION_NAMES, n_samples=sum(t.n for t in trs))
         if bar is not None:
             bar.start()
-        common = dict(priors=priors, progress=progress, **settings)
+        common = dict(priors=priors, settings=settings, progress=progress)
         if mechanisms is None:
             result = run_sample(
                 trs,

@@ -32,8 +32,18 @@ from numpy.typing import ArrayLike
 SEED_PERCENT_ERROR: dict[str, float] = {"force_N": 3.3, "torque_Nm": 1.2}
 #: The seed paper's acceptance: force and torque percent error below 10 %.
 SEED_ACCEPTANCE_PCT = 10.0
-#: The standard normal quantile of a two-sided 90 % interval (estimate ± Z90 standard
-#: errors): every linearised 90 % interval the tool gives.
+#: Largest lag-1 autocorrelation of a residual that the diagnosis takes as measured, in
+#: its effective number of residuals ``n (1 - rho) / (1 + rho)`` (a smooth misfit's
+#: approaches 1). Not the clip of the standard errors' bandwidth
+#: (:data:`ewb_ident.inference.uncertainty.SCORE_RHO_MAX`, another estimate).
+RHO_MAX = 0.98
+#: The probability of every interval the tool gives: the linearised intervals
+#: (estimate ± :data:`Z90` standard errors) and the posterior's highest-density ones.
+INTERVAL_PROB = 0.9
+#: The standard normal quantile of a two-sided :data:`INTERVAL_PROB` interval,
+#: ``ndtri(0.5 + INTERVAL_PROB / 2)``, written out to the last bit so that importing the
+#: package does not import SciPy (``tests/test_fit.py`` checks it against
+#: ``scipy.special.ndtri``); every linearised 90 % interval the tool gives.
 Z90 = 1.6448536269514722
 
 

@@ -89,11 +89,19 @@ MAX_GAP = 5
 NanPolicy = Literal["raise", "interpolate"]
 
 
-class InputError(ValueError):
+class EWBIdentError(Exception):
+    """The base of every error the tool raises on purpose: :class:`InputError` (input
+    the caller can fix, a ``ValueError``) and the study runner's ``ScriptError`` and
+    ``ClusterError`` (each a ``RuntimeError``). ``except EWBIdentError`` catches them all
+    and lets a bug through."""
+
+
+class InputError(EWBIdentError, ValueError):
     """Input the caller can fix: a trace, a mapping, an option, a parameters or study
     file, a prior. The message is one line naming what and where and what to do (the
     command line prints it and exits with code 2). Every such error of the package
-    derives from it, so ``except InputError`` catches them all."""
+    derives from it, so ``except InputError`` catches them all; it is a ``ValueError``
+    too, as it always was."""
 
 
 class TraceError(InputError):

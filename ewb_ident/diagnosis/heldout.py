@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ewb_ident.data.metrics import RHO_MAX
+
 #: A learned term must lower the held-out residual by this much (a dBIC-like score of
 #: the held-out residual sums, with the effective number of residuals, no penalty).
 HELDOUT_BIC = 10.0
@@ -152,7 +154,7 @@ class Design:
 
     def rho_after(self, terms: Sequence[int], lam: float) -> float:
         """Lag-1 autocorrelation of the residual with the term columns ``terms`` fitted
-        (clipped to [0, 0.98]): what remains serially correlated after the term."""
+        (clipped to [0, RHO_MAX]): what remains serially correlated after the term."""
         _, x = self.insample(terms, lam)
         return lag1((self.r + self._A[:, self._index(terms)] @ x)[self.fold >= 0])
 
@@ -166,9 +168,10 @@ class Design:
 
 
 def lag1(e: np.ndarray) -> float:
-    """Lag-1 autocorrelation of a residual about its mean, clipped to [0, 0.98]."""
+    """Lag-1 autocorrelation of a residual about its mean, clipped to
+    ``[0, RHO_MAX]`` (:data:`ewb_ident.data.metrics.RHO_MAX`)."""
     e = e - np.mean(e)
-    return float(np.clip(e[1:] @ e[:-1] / max(e @ e, 1e-300), 0.0, 0.98))
+    return float(np.clip(e[1:] @ e[:-1] / max(e @ e, 1e-300), 0.0, RHO_MAX))
 
 
 def white_level(r: np.ndarray, fold_rows: np.ndarray) -> float:

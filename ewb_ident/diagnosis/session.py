@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from scipy.special import chdtrc
 
-from ewb_ident.data.metrics import channel_metrics, noise_sigma, sensor_noise, smooth
+from ewb_ident.data.metrics import RHO_MAX, channel_metrics, noise_sigma, sensor_noise, smooth
 from ewb_ident.data.stages import (
     CHANNELS,
     STAGE,
@@ -399,10 +399,6 @@ def bic_evidence(
         "residual_lag1_after": rho,
         "n_params_added": float(dk),
     }
-
-
-#: Largest lag-1 autocorrelation used for the effective number of residuals.
-RHO_MAX = 0.98
 
 
 def _lag1(f: AugFit, sigma: Mapping[str, np.ndarray]) -> float:

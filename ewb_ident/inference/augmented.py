@@ -29,7 +29,7 @@ from ewb_ident.data.stages import CHANNELS, STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.problem import FORCED_CHANNEL, PROGRAM_COLUMNS, Z_NAMES, fit_program
 from ewb_ident.inference.solvers import Solution, Status, levenberg_marquardt
-from ewb_ident.inference.uncertainty import serial_sd
+from ewb_ident.inference.uncertainty import parameter_uncertainty
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
@@ -48,16 +48,10 @@ MAX_STARTS = 24
 #: units of their noise) by less than this together, with the optimum of its linearised
 #: model within one standard error (:func:`ewb_ident.inference.solvers.levenberg_marquardt`).
 STALL = 0.1
-#: Columns a fit may read.
-COLUMNS = (
-    "voltage_V",
-    "theta_deg",
-    "x_m",
-    "force_N",
-    "torque_Nm",
-    "current_A",
-    "disc_speed_rad_s",
-)
+#: Columns a fit may read: the program's (the voltage and the channels of
+#: :data:`ewb_ident.data.stages.CHANNELS`) and the disc speed that speed-dependent
+#: mechanisms read.
+COLUMNS = (*PROGRAM_COLUMNS, "disc_speed_rad_s")
 
 
 def slow_smooth(y: np.ndarray, sigma: float, width: int = 5, fast: int = 1) -> np.ndarray:
@@ -501,7 +495,7 @@ def _result(problem: AugProblem, u, data, ok, templates, at=None) -> AugFit:
         for info in tmpl.param_info():
             infos.append(info)
             names.append(f"{tmpl.variant}.{info.name}")
-    stderr, white = _stderr(J, r, n_res, u_np, infos, [(nch, r.size // nch)])
+    unc = parameter_uncertainty(J, r, u_np, infos, [(nch, r.size // nch)], n=n_res)
     p, theta0, mechs = problem.build(np.asarray(u, float), data)
     pred = {ch: np.asarray(v)[:n] for ch, v in pred_all.items()}
     values = {name: float(getattr(p, name)) for name in MODEL_PARAMS}
@@ -512,8 +506,8 @@ def _result(problem: AugProblem, u, data, ok, templates, at=None) -> AugFit:
         stages=problem.stages,
         mechanisms=plain,
         values=values,
-        stderr=dict(zip(names, stderr, strict=True)),
-        stderr_white=dict(zip(names, white, strict=True)),
+        stderr=dict(zip(names, unc.stderr, strict=True)),
+        stderr_white=dict(zip(names, unc.stderr_white, strict=True)),
         rss=rss,
         n=n_res,
         k=k,
@@ -524,37 +518,3 @@ def _result(problem: AugProblem, u, data, ok, templates, at=None) -> AugFit:
         u=u_np,
         problem=problem,
     )
-
-
-def _stderr(
-    J: np.ndarray, r: np.ndarray, n: int, u: np.ndarray, infos, segments
-) -> tuple[list[float | None], list[float | None]]:
-    """Standard errors (SI) from the Jacobian, with the residual scale profiled: the
-    larger of the white and the serial-correlation-robust one, and the white one
-    (:mod:`ewb_ident.inference.uncertainty`). Columns without slope get none."""
-    k = J.shape[1]
-    if k == 0:
-        return [], []
-    scale = np.linalg.norm(J, axis=0)
-    good = scale > 1e-12 * max(float(np.max(scale)), 1e-300)
-    out: list[float | None] = [None] * k
-    white: list[float | None] = [None] * k
-    if not np.any(good):
-        return out, white
-    Js = J[:, good] / scale[good]
-    _, s, Vt = np.linalg.svd(Js, full_matrices=False)
-    if s[-1] <= s[0] * 1e-10:
-        keep = s > s[0] * 1e-10
-        inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
-    else:
-        inv = (Vt.T / s**2) @ Vt
-    dof = max(n - k, 1)
-    sd_white = np.sqrt(np.clip(np.diag(inv) * float(r @ r) / dof, 0.0, None))
-    sd = np.maximum(sd_white, serial_sd(Js, r, inv, segments, n, dof)) / scale[good]
-    sd_white = sd_white / scale[good]
-    for j, idx in enumerate(np.flatnonzero(good)):
-        slope = abs(infos[idx].dp_du(u[idx]))
-        for dst, v in ((out, sd[j]), (white, sd_white[j])):
-            se = float(slope * v)
-            dst[idx] = se if np.isfinite(se) else None
-    return out, white

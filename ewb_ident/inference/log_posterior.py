@@ -3,15 +3,18 @@ walkers), its segments per trace and stage, and the walkers' starts."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ewb_ident.data.metrics import INTERVAL_PROB
 from ewb_ident.data.trace import InputError
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import Prior, param_info
@@ -87,8 +90,35 @@ def physical_memory() -> float:
 
 @dataclass(frozen=True)
 class SamplerSettings:
-    """How the ensembles run and what is summarised (the keyword arguments of
-    :func:`ewb_ident.inference.posterior.sample`, which documents each)."""
+    """How the ensembles run and what is summarised, for
+    :func:`ewb_ident.inference.posterior.sample` and ``sample_corrected`` (their
+    ``settings``; each field may also be given to them as a keyword argument).
+
+    Attributes
+    ----------
+    noise_model
+        ``"auto"``, ``"white"`` or ``"ar1"`` (:mod:`ewb_ident.inference.posterior`).
+    n_walkers
+        Walkers per ensemble (even; default ``max(32, 4 * dimension)``).
+    n_steps
+        Steps per ensemble planned for the kept run (after the 200 adaptation steps); it
+        stops earlier once converged (checked every 100 steps).
+    max_steps
+        The run is extended (deterministically) until it has converged or has this many
+        steps (default ``10 * n_steps``; ``n_steps`` switches extension off).
+    n_ensembles
+        Independent ensembles (>= 2).
+    min_ess
+        Effective sample size every sampled parameter needs for ``converged``.
+    hdi_prob
+        Probability of the highest-density intervals.
+    max_draws
+        Draws kept (over all ensembles) for the posterior predictive and the pointwise
+        log-likelihood of ``PosteriorResult.to_inference_data``.
+    seed
+        Seed of everything random (starting walkers, emcee, noise draws): the same seed
+        gives the same result.
+    """
 
     noise_model: str = "auto"
     n_walkers: int | None = None
@@ -96,9 +126,22 @@ class SamplerSettings:
     max_steps: int | None = None
     n_ensembles: int = 2
     min_ess: float = 400.0
-    hdi_prob: float = 0.9
+    hdi_prob: float = INTERVAL_PROB
     max_draws: int = 1000
     seed: int = 0
+
+    @classmethod
+    def of(
+        cls, settings: SamplerSettings | None, options: Mapping[str, Any], caller: str
+    ) -> SamplerSettings:
+        """``settings`` (default: the defaults) with the fields given one by one in
+        ``options`` in place of its own: the keyword arguments of ``caller``, which
+        raises :class:`TypeError` for a name that is no field."""
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = [name for name in options if name not in fields]
+        if unknown:
+            raise TypeError(f"{caller}() got an unexpected keyword argument {unknown[0]!r}")
+        return dataclasses.replace(settings or cls(), **options)
 
     @property
     def step_limit(self) -> int:

@@ -124,17 +124,10 @@ def sample(
     per_trace: Iterable[str] | None = None,
     fixed: Mapping[str, float] | None = None,
     priors: str | Path | Mapping[str, Any] | None = None,
-    noise_model: str = "auto",
-    n_walkers: int | None = None,
-    n_steps: int = 2000,
-    max_steps: int | None = None,
-    n_ensembles: int = 2,
-    min_ess: float = 400.0,
-    hdi_prob: float = 0.9,
-    max_draws: int = 1000,
-    seed: int = 0,
+    settings: SamplerSettings | None = None,
     integrator: Integrator = EXPONENTIAL,
     progress: Callable[[int, int], None] | None = None,
+    **options: Any,
 ) -> PosteriorResult:
     """Sample the posterior of the EWB model's parameters, starting from least squares.
 
@@ -151,30 +144,17 @@ def sample(
         As for :func:`ewb_ident.inference.least_squares` (``free`` names may span the given stages).
     priors
         A TOML file (or parsed tables) overriding ``ewb_ident/inference/priors.toml``.
-    noise_model
-        ``"auto"``, ``"white"`` or ``"ar1"`` (module docstring).
-    n_walkers
-        Walkers per ensemble (even; default ``max(32, 4 * dimension)``).
-    n_steps
-        Steps per ensemble planned for the kept run (after the 200 adaptation steps); it
-        stops earlier once converged (checked every 100 steps).
-    max_steps
-        The run is extended (deterministically) until it has converged or has this many
-        steps (default ``10 * n_steps``; ``n_steps`` switches extension off).
-    n_ensembles
-        Independent ensembles (>= 2).
-    min_ess
-        Effective sample size every sampled parameter needs for ``converged``.
-    hdi_prob
-        Probability of the highest-density intervals.
-    max_draws
-        Draws kept (over all ensembles) for the posterior predictive and the pointwise
-        log-likelihood of :meth:`PosteriorResult.to_inference_data`.
-    seed
-        Seed of everything random (starting walkers, emcee, noise draws): the same seed
-        gives the same result.
+    settings
+        How the ensembles run and what is summarised
+        (:class:`~ewb_ident.inference.log_posterior.SamplerSettings`, which documents
+        each field: ``noise_model``, ``n_walkers``, ``n_steps``, ``max_steps``,
+        ``n_ensembles``, ``min_ess``, ``hdi_prob``, ``max_draws``, ``seed``); default:
+        its defaults.
     progress
         Called as ``progress(steps_done, steps_planned)`` (per ensemble) during the run.
+    **options
+        Fields of :class:`~ewb_ident.inference.log_posterior.SamplerSettings` given one
+        by one, in place of those of ``settings`` (e.g. ``sample(trace, seed=1)``).
 
     Returns
     -------
@@ -191,9 +171,7 @@ def sample(
     if not traces:
         raise SampleError("no traces to sample")
     free, per_trace, fixed, _ = check_parameter_options(free, per_trace, fixed, None)
-    settings = SamplerSettings(
-        noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
-    )
+    settings = SamplerSettings.of(settings, options, "sample")
     settings.check(n_samples=sum(t.n for t in traces))
     stages = _stage_list(stage, traces)
     prior_table = load_priors(priors)
@@ -266,16 +244,9 @@ def sample_corrected(
     corrected: Any,
     *,
     priors: str | Path | Mapping[str, Any] | None = None,
-    noise_model: str = "auto",
-    n_walkers: int | None = None,
-    n_steps: int = 2000,
-    max_steps: int | None = None,
-    n_ensembles: int = 2,
-    min_ess: float = 400.0,
-    hdi_prob: float = 0.9,
-    max_draws: int = 1000,
-    seed: int = 0,
+    settings: SamplerSettings | None = None,
     progress: Callable[[int, int], None] | None = None,
+    **options: Any,
 ) -> PosteriorResult:
     """Sample the posterior of the whole chain corrected by catalog mechanisms.
 
@@ -297,8 +268,7 @@ def sample_corrected(
         The corrected fit of ``trace`` (a
         :class:`ewb_ident.diagnosis.corrected.CorrectedFit`) whose free parameters are
         sampled.
-    priors, noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob,
-    max_draws, seed, progress
+    priors, settings, progress, **options
         As for :func:`sample`.
 
     Returns
@@ -312,16 +282,14 @@ def sample_corrected(
     SampleError, PriorError
         Settings, priors or mechanisms that cannot be used with this trace.
     """
-    settings = SamplerSettings(
-        noise_model, n_walkers, n_steps, max_steps, n_ensembles, min_ess, hdi_prob, max_draws, seed
-    )
+    settings = SamplerSettings.of(settings, options, "sample_corrected")
     settings.check(n_samples=trace.n)
     prior_table = load_priors(priors)
     t_start = time.perf_counter()
     start = _corrected_start(trace, corrected)
     table = {n: mechanism_prior(n) for n in start.corr_names if "." in n} | prior_table
     t_fit = time.perf_counter()
-    lp, names, u0, segs = build([start], table, noise_model, [trace.time_s])
+    lp, names, u0, segs = build([start], table, settings.noise_model, [trace.time_s])
     run = run_chains(lp, [start], names, u0, table, settings, progress)
     notes = [f"least-squares start (corrected chain): {w}" for w in corrected.warnings]
     result = assemble(

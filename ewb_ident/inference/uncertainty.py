@@ -13,6 +13,10 @@ standard error is the larger of the white one and the serial-correlation-robust
 covariance of the scores ``J_i r_i`` summed over the channels at each instant (Bartlett
 kernel, bandwidth by Andrews' AR(1) plug-in rule). On white residuals the two agree to
 within the estimator's own noise; the correlations reported are the white ones.
+
+:func:`parameter_uncertainty` is the one function that computes them, for every
+least-squares fit the tool makes (stage and chain fits, fits with mechanisms), with one
+rule for the directions the data cannot determine (its docstring).
 """
 
 from __future__ import annotations
@@ -28,8 +32,18 @@ STRONG_CORRELATION = 0.99
 #: Above this standard error in the O(1) coordinate a parameter is poorly determined
 #: (for log-scaled parameters: a relative standard error above 30 %).
 POORLY_DETERMINED = 0.3
-#: The scores' lag-one autocorrelation is clipped here before it sets the bandwidth.
-RHO_MAX = 0.99
+#: The scores' lag-one autocorrelation is clipped here before it sets the bandwidth (not
+#: :data:`ewb_ident.data.metrics.RHO_MAX`, the diagnosis's clip of a residual's: another
+#: estimate, with the value the standard errors were calibrated with).
+SCORE_RHO_MAX = 0.99
+#: A direction of the column-scaled Jacobian whose singular value is below this fraction
+#: of the largest is one the data cannot determine; so is a column whose slope is below
+#: this fraction of the steepest column's.
+SINGULAR = 1.0e-12
+#: A parameter loads on such a direction when its component in the direction's unit
+#: vector exceeds this (the square root of the float64 epsilon: smaller components are
+#: the decomposition's round-off).
+LOADING = 1.5e-8
 
 
 @dataclass(frozen=True)
@@ -39,14 +53,17 @@ class Uncertainty:
     Attributes
     ----------
     stderr
-        Standard error of each parameter, SI units (None where the Jacobian is singular):
-        the larger of the white-residual and the serial-correlation-robust one.
+        Standard error of each parameter, SI units: the larger of the white-residual and
+        the serial-correlation-robust one; None for a parameter the data cannot determine
+        (:func:`parameter_uncertainty` says the rule).
     corr
         Correlation matrix of the parameters.
     condition_number
         Of the column-scaled Jacobian.
     sd_u
-        Standard errors in the unconstrained O(1) coordinates (inf where singular).
+        Standard errors in the unconstrained O(1) coordinates (inf where undetermined).
+    stderr_white
+        The white-residual standard errors, SI units (None as in ``stderr``).
     """
 
     stderr: list[float | None]
@@ -65,7 +82,7 @@ def bandwidth(g: np.ndarray) -> int:
         v = float(x @ x)
         if not v > 0:
             continue
-        rho = float(np.clip((x[1:] @ x[:-1]) / v, -RHO_MAX, RHO_MAX))
+        rho = float(np.clip((x[1:] @ x[:-1]) / v, -SCORE_RHO_MAX, SCORE_RHO_MAX))
         s4 = ((1.0 - rho**2) * v / n) ** 2
         num += 4.0 * rho**2 * s4 / ((1.0 - rho) ** 6 * (1.0 + rho) ** 2)
         den += s4 / (1.0 - rho) ** 4
@@ -129,16 +146,30 @@ def serial_sd(
 
 
 def parameter_uncertainty(
-    J: np.ndarray, r: np.ndarray, u: np.ndarray, infos, segments=None
+    J: np.ndarray, r: np.ndarray, u: np.ndarray, infos, segments=None, n: int | None = None
 ) -> Uncertainty:
     """Standard errors (SI), correlations and condition number from the Jacobian.
+
+    The one computation of standard errors for every least-squares fit: the white one and
+    the serial-correlation-robust one (with ``segments``), as the module docstring says.
+
+    Singular directions, one rule: the columns of ``J`` are scaled to unit length and
+    decomposed, ``J / scale = U diag(s) V^T``. A direction ``v`` (a row of ``V^T``) whose
+    singular value is below :data:`SINGULAR` times the largest is one the data cannot
+    determine, and so is a column whose slope (norm) is below :data:`SINGULAR` times the
+    steepest column's (the direction of that parameter alone). A parameter that loads
+    on such a direction (its component in ``v`` above :data:`LOADING`) has no standard
+    error: ``None`` (and ``inf`` in ``sd_u``). The other parameters keep theirs, from the
+    pseudo-inverse over the determined directions, which is their exact covariance
+    since they do not move along the undetermined ones. A model that diverged (``J``
+    or ``r`` not finite) gives no standard errors at all.
 
     Parameters
     ----------
     J
-        Jacobian of the weighted residuals with respect to ``u``, shape (n, p).
+        Jacobian of the weighted residuals with respect to ``u``, shape (rows, p).
     r
-        Weighted residuals at the optimum, shape (n,).
+        Weighted residuals at the optimum, shape (rows,).
     u
         The optimum in unconstrained coordinates, shape (p,).
     infos
@@ -146,8 +177,12 @@ def parameter_uncertainty(
     segments
         How the rows are laid out in time (see :func:`serial_variance`); without it the
         standard errors are the white ones.
+    n
+        Residuals that count, for the degrees of freedom ``n - p`` (default: every row;
+        fewer when the rows include padding weighted zero).
     """
-    n, p = J.shape
+    rows, p = J.shape
+    n = rows if n is None else int(n)
     if p == 0:
         return Uncertainty([], np.zeros((0, 0)), 1.0, np.zeros(0), [])
     if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
@@ -155,27 +190,32 @@ def parameter_uncertainty(
         # standard errors, and no correlations to report.
         return Uncertainty([None] * p, np.eye(p), float("inf"), np.full(p, np.inf), [None] * p)
     scale = np.linalg.norm(J, axis=0)
-    scale = np.where(scale > 0, scale, 1.0)
+    flat = ~(scale > SINGULAR * float(np.max(scale)))
+    scale = np.where(flat, 1.0, scale)
     Js = J / scale
+    Js[:, flat] = 0.0
     # SVD of the small triangular factor: the same singular values as Js, far cheaper.
     _, s, Vt = np.linalg.svd(np.linalg.qr(Js, mode="r"))
+    s = np.concatenate([s, np.zeros(p - s.size)])  # fewer rows than columns
     cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
-    keep = s > s[0] * 1e-12
+    keep = s > s[0] * SINGULAR
+    undetermined = flat | np.any(np.abs(Vt[~keep]) > LOADING, axis=0)
     inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
-    cov_u = inv / np.outer(scale, scale) * float(r @ r) / max(n - p, 1)
+    dof = max(n - p, 1)
+    cov_u = inv / np.outer(scale, scale) * float(r @ r) / dof
     sd_white = np.sqrt(np.clip(np.diag(cov_u), 0, None))
     safe = np.where(sd_white > 0, sd_white, 1.0)
     corr = cov_u / np.outer(safe, safe)
     sd_u = sd_white
     if segments is not None:
-        sd_u = np.maximum(sd_white, serial_sd(Js, r, inv, segments, n, max(n - p, 1)) / scale)
+        sd_u = np.maximum(sd_white, serial_sd(Js, r, inv, segments, n, dof) / scale)
     stderr: list[float | None] = []
     white: list[float | None] = []
     for j, info in enumerate(infos):
         for out, sd in ((stderr, sd_u), (white, sd_white)):
             se = float(abs(info.dp_du(u[j])) * sd[j])
-            out.append(se if np.isfinite(se) and keep.all() else None)
-    return Uncertainty(stderr, corr, cond, np.where(keep.all(), sd_u, np.inf), white)
+            out.append(se if np.isfinite(se) and not undetermined[j] else None)
+    return Uncertainty(stderr, corr, cond, np.where(undetermined, np.inf, sd_u), white)
 
 
 def identifiability_notes(names, unc: Uncertainty, stderr) -> list[str]:

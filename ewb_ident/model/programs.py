@@ -216,7 +216,7 @@ def made_once(lock, pending: dict, key, lookup: Callable, make: Callable) -> tup
 #: the program; residuals equal bit for bit, Jacobians to 1e-13 relative. And the machine
 #: code of a program generated in 4 parts side by side, not XLA's default split: it
 #: compiles a little faster, the programs bit for bit the same
-#: (``python benchmarks/bench_compiler_options.py`` measures both). A jaxlib that does not know an
+#: (``python -m benchmarks.bench_compiler_options`` measures both). A jaxlib that does not know an
 #: option compiles without it.
 COMPILER_OPTIONS: dict[str, Any] = {
     "xla_cpu_use_fusion_emitters": False,
@@ -229,7 +229,7 @@ COMPILER_OPTIONS: dict[str, Any] = {
 #: the ratios, e.g. stiction with wedge load torque's residuals and Jacobian) and
 #: compiles in about the same time, its outputs equal to 2e-14 relative; the seed
 #: model's programs compile 20-25 % slower with it, so it is not every program's
-#: (``python benchmarks/bench_compiler_options.py``). Those figures predate native loops
+#: (``python -m benchmarks.bench_compiler_options``). Those figures predate native loops
 #: (:data:`ewb_ident.SMALL_LOOP_BYTES`); a by-hand A/B since then still found the
 #: stiction diagnosis faster with the preset, cold and filled.
 FAST_COMPILE: dict[str, Any] = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}

@@ -24,7 +24,7 @@ nominal gap polynomial ``x = 0`` at about 313 deg and ``x = c`` at about 518 deg
 
 Command line
 ------------
-``python studies/third_rig.py --seed S --n N --out DIR`` writes ``DIR/case_000.csv``,
+``python -m validation_rigs.third_rig --seed S --n N --out DIR`` writes ``DIR/case_000.csv``,
 ``DIR/case_000.json`` (sidecar), ``DIR/case_000.truth.json`` and ``DIR/cases.csv``.
 ``--check`` additionally verifies the written cases (finite traces, force range,
 peak-force fractions, tracking errors, agreement with a fine-tolerance ``solve_ivp``

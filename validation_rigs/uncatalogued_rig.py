@@ -33,7 +33,7 @@ controller reacts to the effect).
 
 Command line
 ------------
-``python studies/uncatalogued_rig.py --seed S --per-form N --out DIR [--check]``
+``python -m validation_rigs.uncatalogued_rig --seed S --per-form N --out DIR [--check]``
 """
 
 from __future__ import annotations

@@ -1,0 +1,2 @@
+"""The test suite (a package, so that a benchmark can import a test's reference code as
+``tests.NAME``)."""
