@@ -1,6 +1,6 @@
 """Discovery beyond the catalog: physics that is in no catalog, on an independent rig.
 
-Every case comes from ``studies/uncatalogued_rig.py``, a simulator written apart from
+Every case comes from ``validation_rigs/uncatalogued_rig.py``, a simulator written apart from
 the tool (it shares no code with ``ewb_ident``), with one of 14 physics families that
 are not in the catalog, two forms each, drawn as the accuracy studies draw their cases
 (rig unit varied by 5 %, open-loop steps or closed-loop PI position / staircase, 100 Hz
@@ -18,7 +18,8 @@ Scoring (decided before the first run; nothing here set a threshold of the tool)
   it was not fitted to (``heldout.excess_share`` of its finding);
 * *dependency*: one of the signals the finding depends on is one the planted term
   depends on (:data:`SAME` lists the signals taken as the same: the torque is twice
-  mu r_eff times the force, a force history is the force's); reported beside it, not
+  mu r_eff times the force, a low-passed history is its signal's: a force history the
+  force's, the low-passed squared current the heat); reported beside it, not
   as the target (added after the run on seed 20261303, which it reran unchanged
   otherwise): the same, counting also the signals the finding names as ones the trace
   cannot tell from its own (``depends_on_equivalent``);
@@ -157,6 +158,7 @@ def _dependency_ok(truth_deps, found_deps) -> bool:
 
 def run_case(i: int, fam: str, form: str, nuisance: str | None, seed: int, out: Path) -> dict:
     """Simulate, diagnose and score one case; its learned term is kept for figures."""
+    from ewb_ident.data.metrics import Z90
     from ewb_ident.data.readers import read_trace
     from ewb_ident.diagnosis.diagnose import diagnose
 
@@ -231,7 +233,7 @@ def run_case(i: int, fam: str, form: str, nuisance: str | None, seed: int, out: 
         if v is None or se is None or name not in rig:
             continue
         checked += 1
-        inside += int(abs(v - rig[name]) <= 1.645 * se)
+        inside += int(abs(v - rig[name]) <= Z90 * se)
     row["abcmu_in"], row["abcmu_checked"] = inside, checked
     return row
 
@@ -279,7 +281,8 @@ def summarise(rows: list[dict[str, str]], seed: int) -> str:
         f"{len(clean)} clean cases with nuisances"
         + (f", {len(errs)} failed" if errs else "")
         + (f"; {np.median(secs):.0f} s per diagnosis median, {max(secs):.0f} s max" if secs else "")
-        + "). Cases: `studies/uncatalogued_rig.py` (independent of the tool); scoring: this "
+        + "). Cases: `validation_rigs/uncatalogued_rig.py` (independent of the tool); "
+        "scoring: this "
         "script's docstring, fixed before the first run.",
         "",
         "| measure | result | target |",
