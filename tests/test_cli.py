@@ -182,3 +182,19 @@ def test_a_semicolon_decimal_comma_csv_is_read_and_said_once(tmp_path):
     a = json.loads((tmp_path / "f" / "fit.json").read_text())["params"]
     b = json.loads((tmp_path / "g" / "fit.json").read_text())["params"]
     assert a == b
+
+
+def test_help_shows_flags_plainly_and_keeps_sentences_whole():
+    """A flag takes no value, so its help shows no type ("<bool>"); a command's
+    description is reflowed to the terminal, not broken where its docstring's lines end."""
+    env = {"COLUMNS": "100", "NO_COLOR": "1"}
+    commands = [c.name or c.callback.__name__ for c in app.registered_commands]
+    for args in ([], *([c] for c in commands)):
+        res = runner.invoke(app, [*args, "--help"], env=env)
+        assert res.exit_code == 0, args
+        assert "<bool>" not in res.output, args
+    text = runner.invoke(app, ["--help"], env=env).output
+    words = " ".join(w for line in text.splitlines() for w in line.strip("│ ").split())
+    # sample's docstring breaks its line after "OUT/summary.json,": the help does not.
+    assert "OUT/summary.json, OUT/posterior.nc (ArviZ)" in words
+    assert "\n│           OUT/summary.json," not in text

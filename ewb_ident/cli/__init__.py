@@ -23,6 +23,20 @@ from ewb_ident.cli import diagnose, compare, validate, batch  # noqa: F401
 # isort: on
 
 
+def _reflowed(doc: str) -> str:
+    """A docstring as help text: each paragraph one line (Typer keeps the docstring's
+    line breaks, which the terminal's width then breaks again mid-sentence)."""
+    import inspect
+
+    paragraphs = inspect.cleandoc(doc).split("\n\n")
+    return "\n\n".join(" ".join(line.strip() for line in p.splitlines()) for p in paragraphs)
+
+
+for _info in app.registered_commands:
+    if _info.help is None and _info.callback is not None and _info.callback.__doc__:
+        _info.help = _reflowed(_info.callback.__doc__)
+
+
 @app.callback(invoke_without_command=True)
 def _main(
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,

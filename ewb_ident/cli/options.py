@@ -22,6 +22,13 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
+# Typer shows every option's type in its help, a flag's as "<bool>": a flag takes no
+# value, so its type column is left empty.
+_display_type = typer.core.TyperOption.display_type_rich
+typer.core.TyperOption.display_type_rich = lambda self, ctx: (  # type: ignore[method-assign]
+    "" if self.is_flag else _display_type(self, ctx)
+)
+
 EXIT_BAD_INPUT = 2
 #: Done and written, but not trustworthy: not converged, or outside the stated acceptance.
 EXIT_UNTRUSTWORTHY = 3
