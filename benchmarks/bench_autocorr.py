@@ -32,7 +32,7 @@ from benchmarks import bench_fit  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.inference import chains  # noqa: E402
 from ewb_ident.inference.posterior import sample  # noqa: E402
-from ewb_ident.model.programs import parallel_map, threads  # noqa: E402
+from ewb_ident.runtime.threads import parallel_map, threads  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

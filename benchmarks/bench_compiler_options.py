@@ -38,7 +38,7 @@ from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.inference.least_squares import fit  # noqa: E402
 from ewb_ident.inference.posterior import sample  # noqa: E402
-from ewb_ident.model import programs  # noqa: E402
+from ewb_ident.runtime import programs, store  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,7 +73,7 @@ def whole_diagnosis() -> list[str]:
     trace = read_trace(TRACE)
     times: dict[str, list[tuple[float, float]]] = {"default": [], "fast": []}
     docs: list[dict] = []
-    programs.set_cache_folder(None)
+    store.set_cache_folder(None)
     os.environ["EWB_IDENT_THREADS"] = "1"
     try:
         for _ in range(2):
@@ -132,7 +132,7 @@ def capture() -> list[tuple[str, object, list]]:
 
         return first
 
-    programs.set_cache_folder(None)  # a wrapped program cannot be stored
+    store.set_cache_folder(None)  # a wrapped program cannot be stored
     programs.clear_memory()
     jax.clear_caches()
     programs._compile = spy

@@ -12,7 +12,7 @@ process and the range.
 - ``ewb-ident diagnose`` of ``bench_speed.py``'s stiction trace at 1 kHz (the slowest
   filled diagnosis row of issue 12): as the package runs it, the programs the last
   diagnosis of a trace of this shape used loaded in a background thread
-  (:func:`ewb_ident.model.programs.prefetching`), against the same with that scope
+  (:func:`ewb_ident.runtime.store.prefetching`), against the same with that scope
   made a no-op.
 - ``ewb-ident sample --min-ess 1000`` of ``datasets/steps_200hz.csv``: as the package runs
   it, dask never imported (``cli.main``), against the same with ``import dask`` before

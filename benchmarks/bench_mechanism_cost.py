@@ -36,7 +36,7 @@ from benchmarks import bench_fit  # noqa: E402
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis.diagnose import diagnose  # noqa: E402
 from ewb_ident.inference import augmented  # noqa: E402
-from ewb_ident.model import programs  # noqa: E402
+from ewb_ident.runtime import programs, store  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,7 +53,7 @@ def capture() -> list[tuple]:
         seen.setdefault(problem, (problem, np.asarray(u), jax.tree_util.tree_map(np.asarray, data)))
         return real(problem, u, data)
 
-    programs.set_cache_folder(None)
+    store.set_cache_folder(None)
     augmented._mechanism_program = spy
     try:
         diagnose(read_trace(TRACE))

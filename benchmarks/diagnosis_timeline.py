@@ -26,7 +26,8 @@ jax.config.update("jax_enable_x64", True)
 
 from ewb_ident.data.readers import read_trace  # noqa: E402
 from ewb_ident.diagnosis import diagnose as module  # noqa: E402
-from ewb_ident.model import programs  # noqa: E402
+from ewb_ident.runtime import store  # noqa: E402
+from ewb_ident.runtime import threads as workers  # noqa: E402
 
 
 def main() -> None:
@@ -34,7 +35,7 @@ def main() -> None:
     parser.add_argument("trace")
     parser.add_argument("--cache", default=None, help="program cache folder")
     args = parser.parse_args()
-    programs.set_cache_folder(args.cache)
+    store.set_cache_folder(args.cache)
     trace = read_trace(args.trace)
 
     lines: list[tuple[float, float, str, str, str]] = []
@@ -65,7 +66,7 @@ def main() -> None:
     finally:
         module._try, module._explain = real_try, real_explain
     steps = ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items())
-    print(f"threads: {programs.threads()}; steps: {steps}")
+    print(f"threads: {workers.threads()}; steps: {steps}")
     for start, end, name, kind, variant in sorted(lines):
         if end - start >= 0.005:  # candidates not tried at this trace's stages return at once
             span = f"{start:6.2f} -> {end:6.2f} s ({end - start:5.2f})"

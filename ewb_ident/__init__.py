@@ -4,6 +4,7 @@ Every public function computes in float64 whatever JAX's global setting
 (:mod:`ewb_ident.model.numerics`).
 
 >>> import ewb_ident as ei
+>>> ei.configure()   # optional: the CLI's set-up (float64 throughout, programs kept on disk)
 >>> trace = ei.read_trace("datasets/steps_200hz.csv")
 >>> result = ei.fit(trace)              # whole chain from voltage
 >>> result.values["a"], result.stderr["a"], result.metrics["force_N"]
@@ -17,62 +18,18 @@ for importing JAX.
 from __future__ import annotations
 
 import importlib
-import os
-import sys
-import warnings
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-#: XLA's CPU compiler emits a ``while`` loop whose one iteration reads and writes fewer
-#: bytes than this as one native loop; a larger one runs as a sequence of kernels
-#: dispatched one by one on every iteration (XLA's default threshold: 1024 bytes). The
-#: models' loops (the motor's sub-steps, with a Jacobian's tangents: a few kB an
-#: iteration) are each some 50-200 kernels of a few numbers, so dispatch dominated them:
-#: natively a mechanism's residuals and Jacobian run 1.1-7x faster and compile as fast
-#: (``python -m benchmarks.bench_native_loops``), their results equal up to round-off
-#: (under 1e-11 relative on the shipped concealed diagnoses). Set through ``XLA_FLAGS``,
-#: which XLA reads once, when JAX starts its CPU backend: see :func:`_native_small_loops`.
-SMALL_LOOP_BYTES = 1 << 20
-_LOOP_KEY = "xla_cpu_small_while_loop_byte_threshold"
-_EXTRA = "--xla_backend_extra_options="
-
-
-def _native_small_loops() -> str:
-    """Add :data:`SMALL_LOOP_BYTES` to ``XLA_FLAGS`` (into the user's
-    ``--xla_backend_extra_options`` if they gave any) unless they set the threshold
-    themselves, and return the threshold JAX's backend uses (part of the compiled
-    programs' cache key). When JAX's backend was started before this package was
-    imported, the flag cannot take effect: a warning says so, and XLA's default holds
-    (the fits run slower; their results differ by round-off)."""
-    flags = os.environ.get("XLA_FLAGS", "").split()
-    for f in flags:
-        if f.startswith(_EXTRA) and f"{_LOOP_KEY}=" in f:
-            return f.split(f"{_LOOP_KEY}=", 1)[1].split(",", 1)[0]  # the user's own
-    bridge = sys.modules.get("jax._src.xla_bridge")
-    started = getattr(bridge, "backends_are_initialized", lambda: False)
-    if started():
-        warnings.warn(
-            "ewb_ident was imported after JAX had started its CPU backend, so its XLA "
-            f"option ({_EXTRA}{_LOOP_KEY}={SMALL_LOOP_BYTES}) is off and fits and "
-            "diagnoses run 2-5x slower; import ewb_ident before any JAX computation, or "
-            "set that option in XLA_FLAGS yourself",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        return "default"
-    ours = f"{_LOOP_KEY}={SMALL_LOOP_BYTES}"
-    given = [i for i, f in enumerate(flags) if f.startswith(_EXTRA)]
-    if given:
-        flags[given[-1]] += f",{ours}"
-    else:
-        flags.append(_EXTRA + ours)
-    os.environ["XLA_FLAGS"] = " ".join(flags)
-    return str(SMALL_LOOP_BYTES)
-
-
-#: The small-loop threshold in effect (see :data:`SMALL_LOOP_BYTES`).
-XLA_SMALL_LOOP_BYTES = _native_small_loops()
+# The one setting made at import: XLA's small-loop threshold, into ``XLA_FLAGS`` (and
+# nothing else; no JAX is imported). :mod:`ewb_ident.runtime.config` says why import time
+# is the only reliable moment; the rest of the set-up is :func:`configure`'s.
+_config = importlib.import_module(".runtime.config", __name__)
+#: XLA's small-loop threshold the package asks for, and the one in effect
+#: (:mod:`ewb_ident.runtime.config`).
+SMALL_LOOP_BYTES = _config.SMALL_LOOP_BYTES
+XLA_SMALL_LOOP_BYTES = _config.XLA_SMALL_LOOP_BYTES
 
 _PUBLIC = {
     "FitError": "inference.problem",
@@ -104,6 +61,7 @@ _PUBLIC = {
     "LearnedSpec": "diagnosis.discovery",
     "validate": "inference.validate",
     "ValidationResult": "inference.validate",
+    "configure": "runtime.config",
 }
 
 __all__ = sorted(_PUBLIC)
@@ -138,6 +96,7 @@ if TYPE_CHECKING:
     from ewb_ident.model.params import PARAMS as PARAMS
     from ewb_ident.model.params import SEED as SEED
     from ewb_ident.model.params import EWBParams as EWBParams
+    from ewb_ident.runtime.config import configure as configure
 
 
 def __dir__() -> list[str]:

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ewb_ident.data.outputs import write_text
-from ewb_ident.model import programs
+from ewb_ident.runtime import programs
 from validation_rigs.other_rig import draw_rig, record
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -44,7 +44,7 @@ from ewb_ident.data.outputs import write_text
 from ewb_ident.data.readers import read_trace
 from ewb_ident.diagnosis.diagnose import diagnose
 from ewb_ident.inference.least_squares import fit
-from ewb_ident.model import programs
+from ewb_ident.runtime import programs
 from validation_rigs import third_rig
 
 ROOT = Path(__file__).resolve().parent

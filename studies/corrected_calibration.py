@@ -32,7 +32,7 @@ import numpy as np
 
 from ewb_ident.data.metrics import Z90
 from ewb_ident.data.outputs import write_text
-from ewb_ident.model import programs
+from ewb_ident.runtime import programs
 from studies import diagnosis_accuracy as da
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,7 +23,7 @@ from pathlib import Path
 import jax
 import pandas as pd
 
-from ewb_ident.model import programs
+from ewb_ident.runtime import programs
 
 ROOT = Path(__file__).resolve().parents[1]
 DROPS = ("current_A", "disc_speed_rad_s", "torque_Nm")

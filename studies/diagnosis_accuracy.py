@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.outputs import write_text
-from ewb_ident.model import programs  # noqa: E402
+from ewb_ident.runtime import programs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "diagnosis_accuracy"

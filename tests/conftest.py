@@ -1,5 +1,6 @@
-"""Test configuration: float64 everywhere, as the CLI sets it at its entry point, and
-on-disk caches of compiled programs in a folder that starts empty for each test run."""
+"""Test configuration: float64 everywhere, as the CLI sets it at its entry point
+(:func:`ewb_ident.configure`), and on-disk caches of compiled programs in a folder that
+starts empty for each test run."""
 
 import gc
 import os
@@ -7,7 +8,7 @@ import os
 import jax
 import pytest
 
-from ewb_ident.model import programs
+from ewb_ident.runtime import programs, store
 
 jax.config.update("jax_enable_x64", True)
 
@@ -32,13 +33,13 @@ def _session_compilation_cache(tmp_path_factory):
     # The package's programs (traced, lowered and compiled once per session), and JAX's
     # cache for the rest (its XLA code only). A program of the package's compiled from
     # JAX's cache (another key, the same code) does not serialise whole; it fails the
-    # check on its first load and is compiled afresh (ewb_ident.model.programs).
-    programs.set_cache_folder(os.path.join(folder, "programs"))
+    # check on its first load and is compiled afresh (ewb_ident.runtime.programs).
+    store.set_cache_folder(os.path.join(folder, "programs"))
     jax.config.update("jax_compilation_cache_dir", os.path.join(folder, "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     yield
     jax.config.update("jax_compilation_cache_dir", None)
-    programs.set_cache_folder(None)
+    store.set_cache_folder(None)
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -493,7 +493,7 @@ def test_two_traces_of_one_length_share_the_motor_angle_program():
     trace of the same length, with other fitted values, compiles nothing (with plain
     floats the values were part of the program's key: one program per trace)."""
     from ewb_ident.diagnosis.session import Session
-    from ewb_ident.model import programs
+    from ewb_ident.runtime import programs
 
     one, two = Session(make_trace("clean")), Session(make_trace("current_limit"))
     one.baseline()

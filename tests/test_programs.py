@@ -1,8 +1,7 @@
-"""Compiled programs kept in memory and on disk (:mod:`ewb_ident.model.programs`)."""
+"""Compiled programs kept in memory and on disk, loaded ahead, and made once for several
+threads (:mod:`ewb_ident.runtime`)."""
 
 from __future__ import annotations
-
-import os
 
 import equinox as eqx
 import jax
@@ -10,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ewb_ident.model import programs
+from ewb_ident.runtime import programs, store
+from ewb_ident.runtime import threads as workers
 
 
 class _Scaled(eqx.Module):
@@ -29,12 +29,12 @@ def _plain(m, x, power):
 
 @pytest.fixture
 def folder(tmp_path):
-    before = programs.cache_folder()
-    programs.set_cache_folder(tmp_path)
+    before = store.cache_folder()
+    store.set_cache_folder(tmp_path)
     programs.clear_memory()
     yield tmp_path
     programs.clear_memory()
-    programs.set_cache_folder(before)
+    store.set_cache_folder(before)
 
 
 def _counts():
@@ -98,16 +98,16 @@ def test_inside_another_program_it_is_traced_into_it(folder):
 
 
 def test_without_a_folder_programs_stay_in_memory(tmp_path):
-    before = programs.cache_folder()
-    programs.set_cache_folder(None)
+    before = store.cache_folder()
+    store.set_cache_folder(None)
     try:
         programs.clear_memory()
         out = _apply(_Scaled(1.0, jnp.asarray(0.0)), jnp.ones(3), 1)
         np.testing.assert_allclose(out["y"], np.sin(1.0) * np.ones(3), rtol=1e-14)
-        assert programs.cache_folder() is None
+        assert store.cache_folder() is None
         assert not list(tmp_path.iterdir())
     finally:
-        programs.set_cache_folder(before)
+        store.set_cache_folder(before)
 
 
 def test_callers_in_several_threads_compile_a_new_program_once(folder):
@@ -133,18 +133,18 @@ def test_callers_in_several_threads_compile_a_new_program_once(folder):
 
 def test_parallel_map_keeps_order_and_the_callers_precision(monkeypatch):
     monkeypatch.setenv("EWB_IDENT_THREADS", "3")
-    assert programs.threads() == 3
-    assert programs.parallel_map(lambda k: k * k, range(5)) == [0, 1, 4, 9, 16]
+    assert workers.threads() == 3
+    assert workers.parallel_map(lambda k: k * k, range(5)) == [0, 1, 4, 9, 16]
     for x64, dtype in ((True, jnp.float64), (False, jnp.float32)):
         with jax.enable_x64(x64):
-            got = programs.parallel_map(lambda _: jnp.zeros(1).dtype, range(3))
+            got = workers.parallel_map(lambda _: jnp.zeros(1).dtype, range(3))
         assert got == [dtype] * 3
 
 
 def test_a_thread_count_that_is_not_a_number_is_refused(monkeypatch):
     monkeypatch.setenv("EWB_IDENT_THREADS", "two")
     with pytest.raises(ValueError, match="EWB_IDENT_THREADS='two' is not a whole number"):
-        programs.parallel_map(abs, [1, 2])
+        workers.parallel_map(abs, [1, 2])
 
 
 def test_a_compiler_option_jaxlib_lacks_is_dropped_not_fatal(folder, monkeypatch):
@@ -192,6 +192,7 @@ def test_the_compiler_options_change_no_residual(folder):
         def step(s, v):
             w = s[1] + 1e-3 * (v - p[0] * s[0] - jnp.tanh(s[1] / p[1]))
             return jnp.stack([s[0] + 1e-3 * w, w]), s[0] ** p[2]
+
         return jax.lax.scan(step, jnp.array([0.1, 0.0]), jnp.sin(x))[1]
 
     lowered = jax.jit(jax.jacfwd(loop)).lower(jnp.array([2.0, 0.05, 1.5]))
@@ -205,15 +206,14 @@ def test_the_compiler_options_change_no_residual(folder):
 def test_a_thread_count_under_one_is_refused(monkeypatch):
     monkeypatch.setenv("EWB_IDENT_THREADS", "0")
     with pytest.raises(ValueError, match="EWB_IDENT_THREADS='0': at least 1 thread is needed"):
-        programs.threads()
-
+        workers.threads()
 
 
 def test_made_once_makes_a_key_once_and_hands_its_failure_to_the_waiters():
     import threading
     import time as _time
 
-    lock, pending, store, calls = threading.Lock(), {}, {}, []
+    lock, pending, kept, calls = threading.Lock(), {}, {}, []
 
     def make_slowly(value):
         def make():
@@ -221,14 +221,14 @@ def test_made_once_makes_a_key_once_and_hands_its_failure_to_the_waiters():
             _time.sleep(0.2)  # the other callers ask meanwhile
             if value is None:
                 raise RuntimeError("could not make it")
-            store[value] = value
+            kept[value] = value
             return value
 
         return make
 
     def ask(key, value, out):
         try:
-            out.append(programs.made_once(lock, pending, key, store.get, make_slowly(value)))
+            out.append(workers.made_once(lock, pending, key, kept.get, make_slowly(value)))
         except RuntimeError as err:
             out.append(str(err))
 
@@ -243,7 +243,7 @@ def test_made_once_makes_a_key_once_and_hands_its_failure_to_the_waiters():
     assert failed == ["could not make it"] * 3
     assert sorted(calls, key=str) == [7, None]
     assert pending == {}
-    assert programs.made_once(lock, pending, 7, store.get, make_slowly(8)) == (7, False)
+    assert workers.made_once(lock, pending, 7, kept.get, make_slowly(8)) == (7, False)
 
 
 @programs.program
@@ -275,76 +275,6 @@ def test_a_bound_program_gives_the_same_results_without_hashing_its_arguments_ag
         _apply.bind(m)(x, 2)
 
 
-# A loop whose iteration reads and writes some 3 kB (over XLA's default 1 kB), and its
-# Jacobian compiled (run here, and in a process without the package).
-_WIDE_LOOP = """
-import jax, jax.numpy as jnp
-jax.config.update("jax_enable_x64", True)
-
-def loop(p):
-    def step(s, v):
-        return jnp.tanh(s * p[0]) + v * p[1], s[0] * s[-1]
-
-    return jax.lax.scan(step, jnp.linspace(0.0, 1.0, 200), jnp.sin(jnp.arange(300.0)))[1]
-
-p = jnp.array([1.3, 0.7])
-compiled = jax.jit(jax.jacfwd(loop)).lower(p).compile()
-native, out = "xla_cpu_small_call" in compiled.as_text(), compiled(p)
-"""
-
-def test_the_models_loops_compile_as_native_loops_with_the_same_numbers():
-    """Importing the package sets XLA's small-loop threshold before JAX starts (so this
-    process has it), and a loop of a few kB an iteration is then one native loop (XLA's
-    ``xla_cpu_small_call``), not kernels dispatched one by one; a process without the
-    package compiles it as kernels and gets the same numbers to round-off."""
-    import json
-    import subprocess
-    import sys
-
-    import ewb_ident
-
-    assert ewb_ident.XLA_SMALL_LOOP_BYTES == str(ewb_ident.SMALL_LOOP_BYTES)
-    here: dict = {}
-    exec(_WIDE_LOOP, here)
-    assert here["native"]
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    script = _WIDE_LOOP + "import json; print(json.dumps([native, out.tolist()]))"
-    done = subprocess.run(
-        [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
-    )
-    native, plain = json.loads(done.stdout.strip().splitlines()[-1])
-    assert not native  # XLA's default: kernels
-    np.testing.assert_allclose(here["out"], np.array(plain), rtol=1e-12, atol=1e-300)
-
-
-def test_a_users_xla_flags_are_kept_and_a_late_import_says_the_option_is_off(monkeypatch):
-    """The threshold joins the user's own backend options; a threshold of the user's is
-    theirs; imported after JAX started its backend, the package warns and reports XLA's
-    default (the programs' cache key holds it)."""
-    import sys
-    import types
-
-    import ewb_ident
-
-    key = "xla_cpu_small_while_loop_byte_threshold"
-    fresh = types.SimpleNamespace(backends_are_initialized=lambda: False)
-    monkeypatch.setitem(sys.modules, "jax._src.xla_bridge", fresh)
-    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_extra_options=a=1 --xla_dump_to=/x")
-    assert ewb_ident._native_small_loops() == str(ewb_ident.SMALL_LOOP_BYTES)
-    assert os.environ["XLA_FLAGS"] == (
-        f"--xla_backend_extra_options=a=1,{key}={ewb_ident.SMALL_LOOP_BYTES} --xla_dump_to=/x"
-    )
-    monkeypatch.setenv("XLA_FLAGS", f"--xla_backend_extra_options={key}=4096,b=2")
-    assert ewb_ident._native_small_loops() == "4096"
-    assert os.environ["XLA_FLAGS"] == f"--xla_backend_extra_options={key}=4096,b=2"
-    started = types.SimpleNamespace(backends_are_initialized=lambda: True)
-    monkeypatch.setitem(sys.modules, "jax._src.xla_bridge", started)
-    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/x")
-    with pytest.warns(RuntimeWarning, match="import ewb_ident before any JAX computation"):
-        assert ewb_ident._native_small_loops() == "default"
-    assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/x"
-
-
 def _work(x) -> list:
     """Three programs in a fixed order, as a diagnosis asks for its fits' programs. (Each
     test gives its own length of ``x``: a program compiled again in one process comes
@@ -361,13 +291,13 @@ def reads(monkeypatch):
     import threading
 
     seen: list[tuple[str, str]] = []
-    read = programs._read
+    read = store.read
 
     def spy(key):
         seen.append((threading.current_thread().name, key))
         return read(key)
 
-    monkeypatch.setattr(programs, "_read", spy)
+    monkeypatch.setattr(store, "read", spy)
     monkeypatch.setenv("EWB_IDENT_THREADS", "2")
     return seen
 
@@ -377,7 +307,7 @@ AHEAD = "ewb-ident programs ahead"
 
 def test_the_programs_the_last_run_used_are_loaded_ahead_in_the_background(folder, reads):
     x = jnp.linspace(0.0, 1.0, 21)
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         first = _work(x)  # compiled, stored, and recorded in the order asked
     (record,) = folder.glob("*.keys")
     keys = [k for _, k in reads]  # each looked up on disk once, and not found
@@ -385,16 +315,16 @@ def test_the_programs_the_last_run_used_are_loaded_ahead_in_the_background(folde
     reads.clear()
     programs.clear_memory()  # as a new process would start
     c0 = _counts()
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         m = _Scaled(2.0, jnp.asarray(0.5))
         head = _apply(m, x, 2)  # the first program names the work: the thread starts
-        programs._SCOPE[0].thread.join()
+        store._SCOPE[0].thread.join()
         rest = [_apply(m, x, 3), _shifted(m, x)]
     assert sorted(reads) == sorted([("MainThread", keys[0]), *((AHEAD, k) for k in keys[1:])])
     assert _counts()["disk"] - c0["disk"] == 3 and _counts()["compiled"] == c0["compiled"]
     for got, want in zip([head, *rest], first, strict=True):
         jax.tree_util.tree_map(np.testing.assert_array_equal, got, want)
-    assert programs._AHEAD == {} and programs._SCOPE[0] is None
+    assert store._AHEAD == {} and store._SCOPE[0] is None
 
 
 def test_a_program_asked_for_before_the_loader_reaches_it_is_loaded_by_the_caller(
@@ -403,13 +333,13 @@ def test_a_program_asked_for_before_the_loader_reaches_it_is_loaded_by_the_calle
     import threading
 
     x = jnp.linspace(0.0, 1.0, 22)
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         first = _work(x)
     keys = [k for _, k in reads]
     reads.clear()
     programs.clear_memory()
     held, release = threading.Event(), threading.Event()
-    spy = programs._read
+    spy = store.read
 
     def slow(key):  # the loader is held on its first program
         if threading.current_thread().name == AHEAD:
@@ -417,9 +347,9 @@ def test_a_program_asked_for_before_the_loader_reaches_it_is_loaded_by_the_calle
             release.wait(10)
         return spy(key)
 
-    monkeypatch.setattr(programs, "_read", slow)
+    monkeypatch.setattr(store, "read", slow)
     c0 = _counts()
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         m = _Scaled(2.0, jnp.asarray(0.5))
         got = [_apply(m, x, 2)]
         assert held.wait(10)
@@ -436,7 +366,7 @@ def test_a_program_asked_for_before_the_loader_reaches_it_is_loaded_by_the_calle
 
 def test_a_damaged_record_or_a_missing_program_only_costs_the_loads(folder, reads):
     x = jnp.linspace(0.0, 1.0, 23)
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         first = _work(x)
     (record,) = folder.glob("*.keys")
     keys = record.read_text().split()
@@ -444,7 +374,7 @@ def test_a_damaged_record_or_a_missing_program_only_costs_the_loads(folder, read
     (folder / f"{keys[-1]}.bin").unlink()
     programs.clear_memory()
     c0 = _counts()
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         again = _work(x)
     for a, b in zip(again, first, strict=True):
         jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
@@ -456,12 +386,12 @@ def test_a_damaged_record_or_a_missing_program_only_costs_the_loads(folder, read
 def test_nothing_is_loaded_ahead_with_one_thread_or_without_a_folder(folder, monkeypatch):
     x = jnp.linspace(0.0, 1.0, 24)
     monkeypatch.setenv("EWB_IDENT_THREADS", "1")
-    with programs.prefetching("work"):
+    with store.prefetching("work"):
         _work(x)
-        assert programs._SCOPE[0] is None
+        assert store._SCOPE[0] is None
     monkeypatch.setenv("EWB_IDENT_THREADS", "2")
-    programs.set_cache_folder(None)
-    with programs.prefetching("work"):
+    store.set_cache_folder(None)
+    with store.prefetching("work"):
         _work(x)
-        assert programs._SCOPE[0] is None
+        assert store._SCOPE[0] is None
     assert list(folder.glob("*.keys")) == []

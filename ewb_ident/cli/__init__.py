@@ -8,7 +8,6 @@ file, column, row and what to do, and exits with code 2; nothing is written.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -52,7 +51,8 @@ def _main(
     if verbose:
         import atexit
 
-        from ewb_ident.model.programs import DISK_ERRORS, describe_stats
+        from ewb_ident.runtime.programs import describe_stats
+        from ewb_ident.runtime.store import DISK_ERRORS
 
         def report() -> None:
             sys.stderr.write(describe_stats() + "\n")
@@ -84,8 +84,8 @@ def _interrupted(signum, frame) -> None:
 
 
 def main() -> None:
-    """Entry point of the ``ewb-ident`` script: float64 on, then the command."""
-    import os
+    """Entry point of the ``ewb-ident`` script: :func:`ewb_ident.configure`, then the
+    command."""
     import signal
 
     signal.signal(signal.SIGINT, _interrupted)
@@ -99,22 +99,13 @@ def main() -> None:
         # in ``sys.modules`` makes ``import dask`` raise ImportError, which both take for
         # "no dask"; the files are the same (tests/test_posterior.py).
         sys.modules.setdefault("dask", None)
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    # Compiled programs are kept on disk, so a second run of a command neither traces nor
-    # compiles them (:mod:`ewb_ident.model.programs`; JAX's own cache stays off: an
-    # executable it loaded does not serialise whole into ours).
-    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    cache = os.environ.get("EWB_IDENT_CACHE", str(Path(xdg) / "ewb-ident" / "programs"))
-    if cache:
-        from ewb_ident.model.programs import set_cache_folder
-
-        set_cache_folder(cache)
-    from ewb_ident.model.programs import threads
+    # The process's set-up (:func:`ewb_ident.configure`): float64 on, and compiled programs
+    # kept on disk, so a second run of a command neither traces nor compiles them (JAX's
+    # own cache stays off: an executable it loaded does not serialise whole into ours).
+    from ewb_ident.runtime.config import configure
 
     try:
-        threads()  # checked before any work starts
+        configure()  # checks $EWB_IDENT_THREADS before any work starts
     except ValueError as err:
         sys.stderr.write(f"error: {err}\n")
         raise SystemExit(2) from None

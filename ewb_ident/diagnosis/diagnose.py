@@ -108,7 +108,8 @@ from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.mechanisms.learned import term_at
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.predict import MOTOR_HOOKS
-from ewb_ident.model.programs import parallel_map, prefetching, threads
+from ewb_ident.runtime.store import prefetching
+from ewb_ident.runtime.threads import parallel_map, threads
 
 # ----------------------------------------------------------------------------- main
 
@@ -151,13 +152,12 @@ def diagnose(
 
     Notes
     -----
-    Each call compiles models for its trace's shape and the mechanisms it tries. A
-    process that diagnoses many traces of different shapes should call
-    ``jax.clear_caches()`` between them (``studies/diagnosis_accuracy.py`` does): the
-    compiled code otherwise accumulates until the kernel's limit on memory maps. With
-    the on-disk program cache, the programs the last diagnosis of a trace of this length
-    and these channels used are loaded ahead in the background
-    (:func:`~ewb_ident.model.programs.prefetching`).
+    Each call compiles models for its trace's shape and the mechanisms it tries; a process
+    diagnosing traces of many shapes should release them in between
+    (:func:`ewb_ident.runtime.programs.release`, as ``studies/diagnosis_accuracy.py`` does),
+    or compiled code accumulates until the kernel's limit on memory maps. With the on-disk
+    program cache, the programs the last diagnosis of a trace of this length and these
+    channels used are loaded ahead (:func:`~ewb_ident.runtime.store.prefetching`).
     """
     trace = check_trace(trace)
     # The channels name the work too: the first program (a fit's) takes them as data.

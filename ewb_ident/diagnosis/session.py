@@ -38,7 +38,8 @@ from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
 from ewb_ident.model.physics import clamp_force
-from ewb_ident.model.programs import made_once, on_device
+from ewb_ident.runtime.programs import on_device
+from ewb_ident.runtime.threads import made_once
 
 #: A mechanism must lower the BIC by at least this much.
 BIC_THRESHOLD = 10.0

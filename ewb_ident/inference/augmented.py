@@ -9,7 +9,7 @@ The solver is Levenberg-Marquardt (:func:`ewb_ident.inference.solvers.levenberg_
 from the best of a few
 starting points.
 
-Arrays are padded to a multiple of :data:`ewb_ident.model.programs.PAD` samples (padding
+Arrays are padded to a multiple of :data:`ewb_ident.runtime.programs.PAD` samples (padding
 weighted zero) so that traces of similar length share compiled code.
 """
 
@@ -33,14 +33,8 @@ from ewb_ident.inference.uncertainty import parameter_uncertainty
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import n_substeps, predict
-from ewb_ident.model.programs import (
-    FAST_COMPILE,
-    on_device,
-    pad_to,
-    padded_length,
-    parallel_map,
-    program,
-)
+from ewb_ident.runtime.programs import FAST_COMPILE, on_device, pad_to, padded_length, program
+from ewb_ident.runtime.threads import parallel_map
 
 #: Most starting points tried per fit.
 MAX_STARTS = 24

@@ -43,7 +43,7 @@ from ewb_ident.inference.log_posterior import (
     v_logp_q,
     walker_starts,
 )
-from ewb_ident.model.programs import parallel_map
+from ewb_ident.runtime.threads import parallel_map
 
 # ----------------------------------------------------------------------------- diagnostics
 

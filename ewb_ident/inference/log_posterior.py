@@ -20,7 +20,7 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import Prior, param_info
 from ewb_ident.inference.problem import StageProblem
 from ewb_ident.model.params import ParamInfo
-from ewb_ident.model.programs import on_device, program
+from ewb_ident.runtime.programs import on_device, program
 
 #: The parameters every summary reports (CONTRACTS.md).
 CONTRACT_PARAMS: tuple[str, ...] = ("a", "b", "c", "mu")

@@ -23,7 +23,7 @@ from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.physics import brake_torque, clamp_force, gap
 from ewb_ident.model.predict import predict
-from ewb_ident.model.programs import on_device, pad_to, padded_length, program
+from ewb_ident.runtime.programs import on_device, pad_to, padded_length, program
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 
@@ -246,7 +246,7 @@ def fit_program(n_sub: tuple[int, ...], method: str, Z, traces):
 
 def program_data(problem: StageProblem, tdata: Sequence[dict], sigma, base: dict) -> list[dict]:
     """What :func:`fit_program` reads of each trace, padded to
-    :func:`~ewb_ident.model.programs.padded_length`: the columns, the weights of the
+    :func:`~ewb_ident.runtime.programs.padded_length`: the columns, the weights of the
     fitted channels, the teacher-forcing flags, the fixed values and the free mask."""
     out = []
     forced_ch = FORCED_CHANNEL.get(problem.stage)

@@ -39,7 +39,7 @@ from jax.typing import ArrayLike
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import EWBParams
 from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
-from ewb_ident.model.programs import program
+from ewb_ident.runtime.programs import program
 
 #: ``tau(state, params) -> N*m``: a load torque on the motor from the state (i, omega,
 #: theta [rad]). It must be a hashable, pure function (it is a static argument of jit).
