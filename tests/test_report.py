@@ -335,3 +335,24 @@ def test_every_quantity_the_report_shows_twice_has_one_value_and_one_unit(hyster
         shown = [err3[label], err2b[ch], in_summary]
         assert _agree(shown), (ch, "% error", shown)
         assert _agree([nrmse3[label], nrmse2b[ch]]), (ch, "NRMSE", nrmse3[label], nrmse2b[ch])
+
+
+def test_provenance_names_versions_commit_seeds_and_unit_conversions():
+    """The provenance says what made the numbers (package versions; the commit when run
+    from a checkout; the MCMC seeds) and how each mapped column was converted."""
+    import dataclasses
+
+    import jax
+
+    from ewb_ident.reporting.provenance import provenance_rows
+
+    trace = read_trace(DATA / "staircase_200hz.csv")
+    mapped = {"x_m": {"source": "piston_mm", "unit": "mm"}, "force_N": {"source": "F"}}
+    trace = dataclasses.replace(trace, sidecar={**trace.sidecar, "_mapped": mapped})
+    rows = dict((k.strip(), v) for k, v in provenance_rows([trace], "ewb-ident report X", [7, 8]))
+    assert f"jax {jax.__version__}" in rows["packages"]
+    assert rows["MCMC seeds"] == "7, 8"
+    assert "piston_mm [mm → SI] → x_m" in rows["column mapping"]
+    assert "F → force_N" in rows["column mapping"]
+    if (Path(__file__).parents[1] / ".git").exists():
+        assert len(rows["commit"].removeprefix("<code>").removesuffix("</code>")) == 40

@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.campaign import file_hash
 from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
 from ewb_ident.data.outputs import write_run
 from ewb_ident.data.trace import Trace
@@ -31,6 +30,7 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.priors import param_info
 from ewb_ident.model.params import SEED
 from ewb_ident.reporting.figures import figure_bytes
+from ewb_ident.reporting.provenance import provenance_rows
 from ewb_ident.reporting.report_figures import (
     figure_bell,
     figure_fit,
@@ -197,7 +197,9 @@ def build_report(
         parts.append(_posterior_section(post, posterior, figures))
     if diagnosis is not None:
         parts.append(_diagnosis_section(ddoc, diagnosis, figures))
-    parts.append(_provenance(traces, command))
+    seeds = [p.seed for p in (posterior, corrected_posterior) if p is not None]
+    rows = provenance_rows(traces, command, seeds)
+    parts.append("<h2>7. Provenance</h2>" + _table(["item", "value"], rows))
     page = (
         f"<!doctype html><html lang=en><head><meta charset=utf-8><title>{_e(title)}</title>"
         f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
@@ -436,37 +438,6 @@ def _key_params(values: Mapping[str, float], stderr: Mapping[str, Any], post: Ma
         shown = "" if unit == "1" else f" {unit}"
         out.append(f"{n} = {_num(_times(values[n], k))}{_e(shown)}{ci}")
     return "; ".join(out) + "."
-
-
-def _provenance(traces: Sequence[Trace], command: str | None) -> str:
-    """Tool version, date, command and, per trace, file, SHA-256, r_eff and its source,
-    and the column mapping."""
-    import datetime
-    from importlib import metadata
-
-    try:
-        version = metadata.version("ewb-ident")
-    except metadata.PackageNotFoundError:
-        version = "unknown (not installed)"
-    rows = [
-        ["tool", _e(f"ewb-ident {version}")],
-        ["date (UTC)", _e(datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"))],
-    ]
-    if command:
-        rows.append(["command", f"<code>{_e(command)}</code>"])
-    for t in traces:
-        digest = "–"
-        if t.path is not None and Path(t.path).is_file():
-            digest = file_hash(t.path)
-        mapped = ", ".join(f"{src} → {col}" for col, src in t.column_sources.items())
-        rows += [
-            [f"trace {_e(t.name)}", _e(t.label)],
-            ["  SHA-256", f"<code>{digest}</code>"],
-            ["  samples", _e(f"{t.n} at {t.sample_rate_hz:g} Hz, {t.duration_s:g} s")],
-            ["  r_eff", _e(f"{t.r_eff_m:g} m ({t.r_eff_source})")],
-            ["  column mapping", _e(mapped or "none (the file's own column names)")],
-        ]
-    return "<h2>7. Provenance</h2>" + _table(["item", "value"], rows)
 
 
 def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[str, bytes]) -> str:
