@@ -356,3 +356,25 @@ def test_provenance_names_versions_commit_seeds_and_unit_conversions():
     assert "F → force_N" in rows["column mapping"]
     if (Path(__file__).parents[1] / ".git").exists():
         assert len(rows["commit"].removeprefix("<code>").removesuffix("</code>")) == 40
+
+
+def test_the_report_says_why_least_squares_and_posterior_intervals_differ_where_they_do():
+    """Where a parameter's posterior interval and its least-squares one (estimate ± Z90
+    standard errors) differ in width by more than half, one sentence names it and says
+    which to quote; where they agree, nothing is said."""
+    from types import SimpleNamespace
+
+    from ewb_ident.data.metrics import Z90
+    from ewb_ident.reporting.summaries import ls_posterior_note
+
+    fit = SimpleNamespace(free=("a", "c"), stderr={"a": 1e-5, "c": 2e-5})
+    post = {
+        "params": {
+            "a": {"hdi_low": 0.0, "hdi_high": 2 * Z90 * 1e-5 * 1.2},  # agrees
+            "c": {"hdi_low": 0.0, "hdi_high": 2 * Z90 * 2e-5 * 0.3},  # far narrower
+        }
+    }
+    note = ls_posterior_note(fit, post)
+    assert "For c they differ" in note and "quote the posterior interval" in note
+    post["params"]["c"]["hdi_high"] = 2 * Z90 * 2e-5
+    assert ls_posterior_note(fit, post) == ""

@@ -39,6 +39,7 @@ from ewb_ident.reporting.report_figures import (
     phases_of,
 )
 from ewb_ident.reporting.style import CHANNEL_LABELS, PHASE_COLOURS, SCALE, png_bytes
+from ewb_ident.reporting.summaries import ls_posterior_note
 
 
 def phase_table(trace: Trace, predictions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
@@ -282,6 +283,8 @@ def _parameter_section(fit: FitResult, traces: Sequence[Trace], post) -> str:
         row.append(_num(_times(seed.get(name), k)))
         rows.append(row)
     parts.append(_table(head, rows, left=2))
+    if post and (why := ls_posterior_note(fit, post)):
+        parts.append(f'<p class="small">{_e(why)}</p>')
     parts.append(
         '<p class="small">b is dimensionless (the seed paper prints 2.820e-4 m, a units '
         "slip: with that value the bell is a flat 1750 N). Fixed parameters: "

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from ewb_ident.data.metrics import SEED_PERCENT_ERROR
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.model.params import PARAMS, SEED
@@ -185,3 +188,29 @@ def headline(result: FitResult, posterior=None, diagnosis=None, corrected_poster
                 f"  {name:<3}{model:<10}{_fmt(v * k):>10}  {interval:<22} {unit:<3} ({how})"
             )
     return "\n".join(lines)
+
+
+def ls_posterior_note(fit: FitResult, post: Mapping[str, Any]) -> str:
+    """Why the least-squares and posterior intervals differ, for the parameters whose
+    least-squares 90 % interval (estimate ± Z90 standard errors) and posterior interval
+    (``post``: a posterior's ``to_summary_json()``) differ in width by more than a factor
+    1.5; ``""`` when none does."""
+    from ewb_ident.data.metrics import Z90
+
+    out = []
+    for name in fit.free:
+        se = fit.stderr.get(name)
+        p = post["params"].get(name) or {}
+        lo, hi = p.get("hdi_low"), p.get("hdi_high")
+        if se and lo is not None and hi is not None and hi > lo:
+            ratio = (hi - lo) / (2 * Z90 * se)
+            if not 1 / 1.5 <= ratio <= 1.5:
+                out.append(name)
+    if not out:
+        return ""
+    return (
+        "The least-squares standard error is the linearisation at the best fit; the "
+        "posterior interval is the MCMC's, under the priors, and sees the curvature and the "
+        f"bounds the linearisation does not. For {', '.join(out)} they differ by more than "
+        "half: quote the posterior interval."
+    )
