@@ -32,7 +32,7 @@ OVER = {
     "ewb_ident.diagnosis.discovery": 935,
     "ewb_ident.diagnosis.diagnose": 821,
     "ewb_ident.study": 718,
-    "ewb_ident.reporting.html": 640,
+    "ewb_ident.reporting.html": 629,
     "ewb_ident.rig.simulate": 664,
     "ewb_ident.data.readers": 643,
     "ewb_ident.data.validation": 642,

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR, noise_sigma
+from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, SEED_PERCENT_ERROR
 from ewb_ident.data.outputs import write_run
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.units import shown_unit
@@ -36,27 +36,10 @@ from ewb_ident.reporting.report_figures import (
     figure_fit,
     figure_overview,
     pair_figure,
-    phases_of,
+    phase_table,
 )
 from ewb_ident.reporting.style import CHANNEL_LABELS, PHASE_COLOURS, SCALE, png_bytes
 from ewb_ident.reporting.summaries import ls_posterior_note
-
-
-def phase_table(trace: Trace, predictions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
-    """RMS residual per channel and phase, beside the channel's sensor noise."""
-    phases = phases_of(trace)
-    rows = []
-    for c, pred in predictions.items():
-        if not trace.has(c):
-            continue
-        r = trace[c] - pred
-        row: dict[str, Any] = {"channel": c, "noise": noise_sigma(trace[c])}
-        for ph in PHASE_COLOURS:
-            sel = phases == ph
-            row[ph] = float(np.sqrt(np.mean(r[sel] ** 2))) if sel.sum() > 5 else None
-        rows.append(row)
-    return rows
-
 
 # ----------------------------------------------------------------------------- HTML
 
@@ -195,7 +178,7 @@ def build_report(
     figures["bell.png"] = figure_bell(fit.params[0], traces)
     parts.append(_img("bell.png", figures["bell.png"], "bell curve with regions"))
     if post:
-        parts.append(_posterior_section(post, posterior, figures))
+        parts.append(_posterior_section(post, posterior, figures, corrected_posterior))
     if diagnosis is not None:
         parts.append(_diagnosis_section(ddoc, diagnosis, figures))
     seeds = [p.seed for p in (posterior, corrected_posterior) if p is not None]
@@ -443,8 +426,11 @@ def _key_params(values: Mapping[str, float], stderr: Mapping[str, Any], post: Ma
     return "; ".join(out) + "."
 
 
-def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[str, bytes]) -> str:
-    """Section 5, for a posterior (``post`` is its ``to_summary_json()``)."""
+def _posterior_section(
+    post: Mapping[str, Any], posterior: Any, figures: dict[str, bytes], corrected: Any = None
+) -> str:
+    """Section 5, for a posterior (``post`` is its ``to_summary_json()``); the pair plot
+    is of the model the report recommends (the corrected one when there is one)."""
     out = ["<h2>5. Posterior (MCMC)</h2>"]
     conv = post.get("converged")
     out.append(
@@ -466,15 +452,18 @@ def _posterior_section(post: Mapping[str, Any], posterior: Any, figures: dict[st
     diag = post.get("diagnostics") or {}
     flat = {k: v for k, v in diag.items() if isinstance(v, int | float | str | bool)}
     if flat:
-        out.append(_table(["diagnostic", "value"], [[_e(k), _num(v)] for k, v in flat.items()]))
+        table = _table(["diagnostic", "value"], [[_e(k), _num(v)] for k, v in flat.items()])
+        out.append(f"<details><summary>Sampler diagnostics</summary>{table}</details>")
     for w in post.get("warnings", []) or []:
         out.append(f'<div class="warn">{_e(w)}</div>')
     for item in post.get("identifiability", []) or []:
         text = item.get("statement") if isinstance(item, dict) else item
         if text:
             out.append(f'<div class="warn">{_e(text)}</div>')
-    figures["pair.png"] = png_bytes(pair_figure(posterior))
-    out.append(_img("pair.png", figures["pair.png"], "pair plot of a, b, c, mu"))
+    shown = corrected if corrected is not None else posterior
+    figures["pair.png"] = png_bytes(pair_figure(shown))
+    which = "the corrected model" if corrected is not None else "the model"
+    out.append(_img("pair.png", figures["pair.png"], f"pair plot of a, b, c, mu of {which}"))
     names, corr = posterior.correlation()
     out.append("<p>Posterior correlation of a, b, c, mu:</p>")
     out.append(

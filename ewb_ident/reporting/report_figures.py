@@ -5,11 +5,12 @@ the posterior's pair plot."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from ewb_ident.data.metrics import noise_sigma
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.log_posterior import CONTRACT_PARAMS, info_of
 from ewb_ident.inference.validate import ValidationResult
@@ -34,6 +35,22 @@ def phases_of(trace: Trace) -> np.ndarray:
     from ewb_ident.diagnosis.locate import phase_labels
 
     return phase_labels(trace)
+
+
+def phase_table(trace: Trace, predictions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
+    """RMS residual per channel and phase, beside the channel's sensor noise."""
+    phases = phases_of(trace)
+    rows = []
+    for c, pred in predictions.items():
+        if not trace.has(c):
+            continue
+        r = trace[c] - pred
+        row: dict[str, Any] = {"channel": c, "noise": noise_sigma(trace[c])}
+        for ph in PHASE_COLOURS:
+            sel = phases == ph
+            row[ph] = float(np.sqrt(np.mean(r[sel] ** 2))) if sel.sum() > 5 else None
+        rows.append(row)
+    return rows
 
 
 def figure_overview(trace: Trace) -> bytes:
