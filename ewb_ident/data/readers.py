@@ -16,7 +16,15 @@ from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.trace import COLUMNS, MAX_GAP, NanPolicy, Trace, column_label, raise_trace_error
+from ewb_ident.data.trace import (
+    COLUMNS,
+    MAX_GAP,
+    NanPolicy,
+    Trace,
+    TraceError,
+    column_label,
+    raise_trace_error,
+)
 from ewb_ident.data.units import convert_unit, load_mapping
 from ewb_ident.data.validation import (
     NAN_HINT,
@@ -28,6 +36,8 @@ from ewb_ident.data.validation import (
 
 #: Most samples a trace may have (10 minutes at 1 kHz), checked before parsing.
 MAX_SAMPLES = 600_000
+#: Most samples a long log may have (10 hours at 1 kHz; ``batch --cycles`` splits it).
+MAX_LOG_SAMPLES = 36_000_000
 
 #: Table suffixes :func:`read_trace` understands.
 SUFFIXES: tuple[str, ...] = (".csv", ".parquet", ".mat")
@@ -123,22 +133,139 @@ def _count_lines(path: Path) -> int:
     return n
 
 
-def _check_length(rows: int, label: str) -> None:
-    """Refuse a table longer than :data:`MAX_SAMPLES`, from its size before it is read
+def _check_length(rows: int, label: str, limit: int = MAX_SAMPLES) -> None:
+    """Refuse a table longer than ``limit`` samples, from its size before it is read
     (CSV lines, Parquet footer, MATLAB headers): one limit for every format."""
-    if rows > MAX_SAMPLES:
+    if rows > limit:
+        if limit < MAX_LOG_SAMPLES:
+            raise_trace_error(
+                label,
+                f"too long: about {rows:,} rows; a trace is at most {limit:,} samples "
+                "(10 min at 1 kHz)",
+                "a long log of many brake applications is read by `ewb-ident batch LOG "
+                "--cycles`, which splits it into its apply cycles",
+            )
         raise_trace_error(
             label,
-            f"too long: about {rows:,} rows; this tool reads at most {MAX_SAMPLES:,} "
-            "samples (10 min at 1 kHz)",
-            "split the recording into brake applications and fit them together",
+            f"too long: about {rows:,} rows; a log is at most {limit:,} samples "
+            "(10 h at 1 kHz)",
+            "split the log into shorter files",
         )
 
 
-def _read_csv(path: Path, label: str) -> _Raw:
+#: Bytes of a CSV's start read to find its separator and decimal mark.
+_HEAD_BYTES = 1 << 16
+#: Bytes of a CSV parsed at a time by the fast reader.
+_BLOCK_BYTES = 1 << 20
+
+
+def _read_csv_fast(path: Path, label: str, rows: int) -> _Raw | None:
+    """A comma-, semicolon- or tab-separated CSV with decimal points, read by Arrow's
+    multithreaded parser into typed columns (float64 for numbers; a column with any
+    other cell stays text, for :func:`_to_float` to name the cell). ``None`` when this
+    parser cannot take the file (a decimal comma, a row of another width, a blank line
+    inside the table, not UTF-8): the detailed reader then reads it, and names the row
+    — only for files of at most :data:`MAX_SAMPLES` rows, which it holds as text."""
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+
+    with open(path, "rb") as handle:
+        head = handle.read(_HEAD_BYTES)
+    try:
+        text = head.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        if err.start < len(head) - 4:  # not a character cut at the block's end
+            return None
+        text = head[: err.start].decode("utf-8-sig")
+    delim, comma = _dialect(text)
+    if comma:
+        if rows > MAX_SAMPLES:
+            raise_trace_error(
+                label,
+                f"a decimal-comma CSV of {rows:,} rows: the fast reader of long logs takes "
+                "'.' as decimal point only",
+                "export with '.' as decimal point, or as Parquet or .mat",
+            )
+        return None
+    parse = pcsv.ParseOptions(delimiter=delim, ignore_empty_lines=False)
+    nulls = ["", "nan", "NaN", "NAN", "Nan"]
+    read = pcsv.ReadOptions(block_size=_BLOCK_BYTES)
+    try:
+        # Column types from the first block (whole numbers read as float64), so that
+        # every block converts alike; the columns are filled block by block into arrays
+        # allocated once: the memory is the float64 columns plus one block.
+        first = pcsv.open_csv(path, read_options=read, parse_options=parse,
+                              convert_options=pcsv.ConvertOptions(null_values=nulls,
+                                                                  strings_can_be_null=True))
+        schema = first.schema
+        first.close()
+        names = [name.strip() for name in schema.names]
+        _check_header(names, label)
+        numeric = [pa.types.is_integer(f.type) or pa.types.is_floating(f.type)
+                   or pa.types.is_null(f.type) for f in schema]
+        types = {f.name: pa.float64() if num else pa.string()
+                 for f, num in zip(schema, numeric, strict=True)}
+        reader = pcsv.open_csv(path, read_options=read, parse_options=parse,
+                               convert_options=pcsv.ConvertOptions(
+                                   column_types=types, null_values=nulls,
+                                   strings_can_be_null=True))
+        size = rows + 1
+        columns: list[Any] = [np.empty(size) if num else [] for num in numeric]
+        empty = np.empty(size, dtype=bool)
+        n = 0
+        for batch in reader:
+            m = batch.num_rows
+            if n + m > size:  # quoted line breaks: more lines than rows never happens
+                grow = max(n + m, 2 * size)
+                columns = [np.resize(c, grow) if isinstance(c, np.ndarray) else c
+                           for c in columns]
+                empty = np.resize(empty, grow)
+                size = grow
+            null = np.ones(m, dtype=bool)
+            for j, column in enumerate(batch.columns):
+                null &= column.is_null().to_numpy(zero_copy_only=False)
+                if numeric[j]:
+                    columns[j][n:n + m] = column.to_numpy(zero_copy_only=False)
+                else:
+                    columns[j].append(column.to_numpy(zero_copy_only=False))
+            empty[n:n + m] = null
+            n += m
+    except (pa.ArrowInvalid, UnicodeDecodeError) as err:
+        if rows > MAX_SAMPLES:
+            reason = " ".join(str(err).split())
+            raise_trace_error(
+                label,
+                f"not a readable CSV file ({reason[:200]})",
+                "every row needs one value per column (a missing value is an empty cell)",
+            )
+        return None
+    # A row whose every cell is empty: at the end dropped (as the detailed reader does);
+    # inside the table, the detailed reader says whether it is a blank line.
+    filled = np.flatnonzero(~empty[:n])
+    last = int(filled[-1]) + 1 if filled.size else 0
+    if last < n and empty[:last].any() and rows <= MAX_SAMPLES:
+        return None
+    if last == 0:
+        raise_trace_error(label, "the header has no data rows under it", "export the samples too")
+    values: dict[str, Any] = {}
+    for name, column in zip(names, columns, strict=True):
+        values[name] = (column[:last] if isinstance(column, np.ndarray)
+                        else np.concatenate(column)[:last])
+    sep = {";": "';'-separated", "\t": "tab-separated", ",": ""}[delim]
+    return _Raw(names, values, sep)
+
+
+def _read_csv(path: Path, label: str, limit: int = MAX_SAMPLES) -> _Raw:
     lines = _count_lines(path)
-    if lines > MAX_SAMPLES + 2:
-        _check_length(lines - 1, label)
+    if lines > limit + 2:
+        _check_length(lines - 1, label, limit)
+    fast = _read_csv_fast(path, label, lines - 1)
+    if fast is not None:
+        return fast
+    return _read_csv_detailed(path, label)
+
+
+def _read_csv_detailed(path: Path, label: str) -> _Raw:
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
             text = handle.read()
@@ -186,7 +313,7 @@ def _read_csv(path: Path, label: str) -> _Raw:
     return _Raw(names, values, dialect)
 
 
-def _read_parquet(path: Path, label: str) -> _Raw:
+def _read_parquet(path: Path, label: str, limit: int = MAX_SAMPLES) -> _Raw:
     import pyarrow.parquet as pq
 
     try:
@@ -195,31 +322,41 @@ def _read_parquet(path: Path, label: str) -> _Raw:
         raise_trace_error(
             label, f"not a readable Parquet file ({type(err).__name__}: {err})", "re-export"
         )
-    _check_length(rows, label)
+    _check_length(rows, label, limit)
     try:
-        table = pq.read_table(path)
+        # One column at a time: the memory is the columns as arrays plus one column
+        # of Arrow's, not the whole table twice.
+        handle = pq.ParquetFile(path)
+        given = list(handle.schema_arrow.names)
+        names = [str(n).strip() for n in given]
+        if not names:
+            raise_trace_error(label, "the file has no columns", "export the log with its columns")
+        _check_header(names, label)
+        if rows == 0:
+            raise_trace_error(label, "the table has no rows", "export the samples too")
+        values = {}
+        for name, column in zip(names, given, strict=True):
+            array = handle.read(columns=[column]).column(0).to_numpy(zero_copy_only=False)
+            # Arrow's buffer is read-only; a copy of our own, made while only this
+            # column is held, can have its gaps filled in place.
+            values[name] = array if array.flags.writeable else array.copy()
+    except TraceError:
+        raise
     except Exception as err:  # pyarrow raises several types for damaged files
         raise_trace_error(
             label, f"not a readable Parquet file ({type(err).__name__}: {err})", "re-export"
         )
-    names = [str(n).strip() for n in table.column_names]
-    if not names:
-        raise_trace_error(label, "the file has no columns", "export the log with its columns")
-    _check_header(names, label)
-    if table.num_rows == 0:
-        raise_trace_error(label, "the table has no rows", "export the samples too")
-    values = {name: table.column(j).to_numpy(zero_copy_only=False) for j, name in enumerate(names)}
     return _Raw(names, values)
 
 
-def _read_mat(path: Path, label: str) -> _Raw:
+def _read_mat(path: Path, label: str, limit: int = MAX_SAMPLES) -> _Raw:
     import scipy.io
 
     try:  # the variables' shapes from the file's headers, nothing loaded
         shapes = [shape for _, shape, _ in scipy.io.whosmat(path)]
     except Exception:  # v7.3 and damaged files: loadmat below says which
         shapes = []
-    _check_length(max((math.prod(shape) for shape in shapes), default=0), label)
+    _check_length(max((math.prod(shape) for shape in shapes), default=0), label, limit)
     try:
         content = scipy.io.loadmat(path, simplify_cells=True)
     except NotImplementedError:
@@ -278,7 +415,7 @@ def _to_float(raw: Any, label: str, column: str) -> np.ndarray:
         )
     kind = arr.dtype.kind
     if kind in "fiu":
-        return arr.astype(np.float64)
+        return arr.astype(np.float64, copy=False)  # the table's own array: no copy
     if kind == "b":
         raise_trace_error(
             label, "holds true/false values, not numbers", "export the numbers", column=column
@@ -371,7 +508,7 @@ def _read_sidecar(path: Path) -> dict[str, Any]:
     return data
 
 
-def _read_table(path: Path, label: str) -> _Raw:
+def _read_table(path: Path, label: str, limit: int = MAX_SAMPLES) -> _Raw:
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise_trace_error(
@@ -389,10 +526,10 @@ def _read_table(path: Path, label: str) -> _Raw:
                 label, "the file is empty", "export the log with a header row and the samples"
             )
         if suffix == ".csv":
-            return _read_csv(path, label)
+            return _read_csv(path, label, limit)
         if suffix == ".parquet":
-            return _read_parquet(path, label)
-        return _read_mat(path, label)
+            return _read_parquet(path, label, limit)
+        return _read_mat(path, label, limit)
     except OSError as err:
         raise_trace_error(
             label, f"cannot read the file ({err.strerror or err})", "check the path and rights"
@@ -461,6 +598,7 @@ def read_trace(
     stages: Iterable[str] | str | None = None,
     nan_policy: NanPolicy = "raise",
     check_units: bool = True,
+    max_samples: int = MAX_SAMPLES,
 ) -> Trace:
     """Read and validate one rig trace.
 
@@ -482,6 +620,9 @@ def read_trace(
         at most :data:`MAX_GAP` samples linearly (counts in ``sidecar["_filled"]``).
     check_units
         Refuse values whose size suggests a wrong unit (see :func:`validate`).
+    max_samples
+        Longest table read (:data:`MAX_SAMPLES`, 10 min at 1 kHz, for a trace to fit;
+        up to :data:`MAX_LOG_SAMPLES` for a long log that is split into cycles).
 
     Returns
     -------
@@ -505,7 +646,7 @@ def read_trace(
     stage_list = parse_stages(stages, label)
     maps = load_mapping(mapping)
 
-    raw = _read_table(path, label)
+    raw = _read_table(path, label, min(max_samples, MAX_LOG_SAMPLES))
     selected: dict[str, str] = {}  # target -> source
     ignored: list[str] = []
     for name in raw.names:
