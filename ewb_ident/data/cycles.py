@@ -151,8 +151,12 @@ def split_cycles(trace: Trace, rule: CycleRule = CycleRule()) -> Split:  # noqa:
     partial = (starts == 0) | (stops == n)
     whole = ~partial
     longest = int(np.max(stops[whole] - starts[whole])) if whole.any() else 0
-    lead = int(math.ceil(rule.lead_s / dt))
-    length = lead + longest + int(math.ceil(rule.tail_s / dt))
+
+    def samples(seconds: float) -> int:  # (1.0 s at 200 Hz is 200 samples, not 201)
+        return int(math.ceil(seconds / dt - 1e-6))
+
+    lead = samples(rule.lead_s)
+    length = lead + longest + samples(rule.tail_s)
     cycles = []
     for k, (a, b, cut) in enumerate(zip(starts, stops, partial, strict=True)):
         lo = a - lead
