@@ -207,13 +207,17 @@ def _bad_inputs(root: Path) -> dict[str, tuple[list[str], str]]:
         "trace as manifest": ([str(root / "v1_0.csv")], "it looks like a trace, not a manifest"),
         "group-by": ([m, "--group-by", "operator"], "--group-by operator: not a metadata column"),
         "r_eff": ([m, "--r-eff", "3"], "r_eff_m must be a pad radius"),
+        "trend column": ([m, "--trend", "cycle"], "--trend cycle: not a metadata column"),
+        "trend text": ([m, "--trend", "hardware"], "--trend hardware: 'v1' is not a number"),
+        "split-on alone": ([m, "--split-on", "force_N"], "--split-on is a setting of --cycles"),
         "unreachable": ([m, "--scheduler", "tcp://127.0.0.1:1"], "no Dask scheduler answered"),
     }
 
 
 @pytest.mark.parametrize("case", ["no path column", "empty", "missing file", "unreadable",
                                   "no source", "empty glob", "trace as manifest", "group-by",
-                                  "r_eff", "unreachable"])
+                                  "r_eff", "trend column", "trend text", "split-on alone",
+                                  "unreachable"])
 def test_bad_input_is_one_line_exit_2_and_nothing_written(campaign, tmp_path, case):
     args, message = _bad_inputs(campaign)[case]
     out = tmp_path / "out"
