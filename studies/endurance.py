@@ -55,12 +55,11 @@ def _child(args: list[str], log: Path) -> tuple[float, float, int]:
 
 ROOT = Path(__file__).resolve().parents[1]
 READ = """
-import sys, time, resource
+import sys, time
 from ewb_ident.data.readers import MAX_LOG_SAMPLES, read_trace
 t0 = time.perf_counter()
 trace = read_trace(sys.argv[1], max_samples=MAX_LOG_SAMPLES)
-print(f"{trace.n} {time.perf_counter() - t0:.2f} "
-      f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}")
+print(f"read {trace.n} samples in {time.perf_counter() - t0:.2f} s")
 """
 
 
@@ -91,12 +90,23 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("/tmp/ewb-endurance"))
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "endurance")
     parser.add_argument("--minutes", type=float, default=60.0)
+    parser.add_argument("--keep-logs", action="store_true",
+                        help="reuse the logs an earlier run of the same length left in --work")
     args = parser.parse_args()
     work, out = args.work, args.out
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
-    log = make_logs(work, args.minutes)
+    kept = work / "endurance.truth.json"
+    if args.keep_logs and kept.is_file() and all(
+            (work / f"endurance.{ext}").is_file() for ext in FORMATS):
+        truth = json.loads(kept.read_text())
+        log = {"samples": int(round(args.minutes * 60_000)), "simulated_s": float("nan"),
+               "truth": truth}
+        if len(truth["cycles"]) != int(round(args.minutes * 6)):
+            raise SystemExit(f"{kept}: the kept logs are of another length; drop --keep-logs")
+    else:
+        log = make_logs(work, args.minutes)
     truth = log["truth"]
     mu0 = truth["params"]["mu"]
     hours = args.minutes / 60.0
@@ -107,15 +117,17 @@ def main() -> None:
     rows, tables = [], {}
     for ext in FORMATS:
         path = work / f"endurance.{ext}"
-        got = subprocess.run([sys.executable, "-c", READ, str(path)], capture_output=True,
-                             text=True, env=os.environ | {"PYTHONPATH": str(ROOT)}, check=True)
-        n, read_s, read_mb = got.stdout.split()
+        # (the peak through /usr/bin/time: a child's own ru_maxrss would start from this
+        # process's, which holds the log)
+        _, read_mb, _ = _child([sys.executable, "-c", READ, str(path)],
+                               work / f"read_{ext}.log")
+        read_s = (work / f"read_{ext}.log").read_text().split()[-2]
         dest = work / f"out_{ext}"
         shutil.rmtree(dest, ignore_errors=True)
         cmd = [sys.executable, "-m", "ewb_ident", "batch", str(path), "--cycles", "--out",
                str(dest)]
         wall, peak, code = _child(cmd, work / f"batch_{ext}.log")
-        print(f"{ext}: read {read_s} s ({read_mb} MB); batch {wall:.0f} s, exit {code}",
+        print(f"{ext}: read {read_s} s ({read_mb:.0f} MB); batch {wall:.0f} s, exit {code}",
               flush=True)
         trend = pd.read_csv(dest / "trend.csv")
         tables[ext] = pd.read_csv(dest / "results.csv")
@@ -126,7 +138,7 @@ def main() -> None:
         cycles = pd.read_csv(dest / "cycles.csv")
         rows.append({
             "format": ext, "file_MB": round(sizes[ext]), "read_s": float(read_s),
-            "read_peak_MB": float(read_mb), "batch_s": round(wall), "batch_peak_MB": round(peak),
+            "read_peak_MB": round(read_mb), "batch_s": round(wall), "batch_peak_MB": round(peak),
             "batch_exit": code,
             "cycles": int((~cycles["partial"]).sum()),
             "mu_slope_per_h [90 %]": f"{mu['slope']:+.6f} [{mu['slope_low_90']:+.6f}, "

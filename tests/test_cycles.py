@@ -6,6 +6,7 @@ of long tables; the trend's interval level. The hour at 1 kHz is studies/enduran
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pandas as pd
@@ -65,6 +66,8 @@ def test_the_split_finds_every_cycle_at_its_apply(log, runs):
         assert cycles["samples"].nunique() == 1  # one length: one compiled program
         assert (dest / "cycles.png").stat().st_size > 0
         assert "The split into apply cycles" in (dest / "index.html").read_text()
+        kept = json.loads((dest / "batch.json").read_text())["settings"]["split"]
+        assert kept["logs"][0]["cycles"] == 6 and kept["rule"]["lead_s"] == 1.0
 
 
 def test_the_fade_is_recovered_within_its_interval_from_every_format(log, runs):

@@ -160,6 +160,7 @@ def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool
     import shutil
     import time
 
+    from ewb_ident.data.campaign import file_hash
     from ewb_ident.data.cycles import CycleRule, cycle_campaign
     from ewb_ident.data.trace import InputError
 
@@ -185,7 +186,11 @@ def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool
         typer.echo(f"{log.name}: {len(s.complete)} apply cycles ({len(s.cycles) - len(s.complete)}"
                    f" partial, not fitted) where {s.channel} rises above {s.threshold:.4g}; "
                    f"read and split in {time.perf_counter() - t0:.1f} s", err=True)
-    return cycles, (splits, table, {"channel": splits[0].split.channel, **vars(rule)})
+    logs = [{"log": e.trace, "sha256": file_hash(e.path), "channel": s.split.channel,
+             "threshold": s.split.threshold, "cycles": len(s.split.complete),
+             "partial": len(s.split.cycles) - len(s.split.complete)}
+            for e, s in zip(campaign.entries, splits, strict=True)]
+    return cycles, (splits, table, {"rule": vars(rule), "logs": logs})
 
 
 def _check_numeric(campaign, column: str, source: str) -> None:

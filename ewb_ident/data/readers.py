@@ -161,7 +161,7 @@ _BLOCK_BYTES = 1 << 20
 
 def _read_csv_fast(path: Path, label: str, rows: int) -> _Raw | None:
     """A comma-, semicolon- or tab-separated CSV with decimal points, read by Arrow's
-    multithreaded parser into typed columns (float64 for numbers; a column with any
+    parser block by block into typed columns (float64 for numbers; a column with any
     other cell stays text, for :func:`_to_float` to name the cell). ``None`` when this
     parser cannot take the file (a decimal comma, a row of another width, a blank line
     inside the table, not UTF-8): the detailed reader then reads it, and names the row
@@ -189,7 +189,9 @@ def _read_csv_fast(path: Path, label: str, rows: int) -> _Raw | None:
         return None
     parse = pcsv.ParseOptions(delimiter=delim, ignore_empty_lines=False)
     nulls = ["", "nan", "NaN", "NAN", "Nan"]
-    read = pcsv.ReadOptions(block_size=_BLOCK_BYTES)
+    # One thread, one block at a time: the threaded reader parses ahead of a slow
+    # consumer (a busy machine), and its memory then grows with the lead.
+    read = pcsv.ReadOptions(block_size=_BLOCK_BYTES, use_threads=False)
     try:
         # Column types from the first block (whole numbers read as float64), so that
         # every block converts alike; the columns are filled block by block into arrays

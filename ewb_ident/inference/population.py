@@ -6,12 +6,16 @@ robust one). The traces of a campaign are of several rig units, days and tempera
 so their true values differ: ``y_i = theta + u_i + e_i`` with ``u_i ~ N(0, tau^2)`` the
 trace-to-trace (unit-to-unit) spread and ``e_i ~ N(0, s_i^2)`` the measurement error.
 
-* ``tau^2`` by DerSimonian and Laird's moment estimator, ``theta`` as the mean weighted by
-  ``1 / (s_i^2 + tau^2)``;
+* ``tau^2`` by Paule and Mandel's estimator: the ``tau^2`` at which the generalised Q
+  statistic equals its expectation ``k - 1`` (so it always lies inside the Q-profile
+  interval below; DerSimonian and Laird's moment estimator, used before, need not: on a
+  campaign of traces at 100 Hz to 1 kHz, whose standard errors differ a
+  hundredfold, it fell outside for 9 of 26 groups x parameters), ``theta`` as the mean
+  weighted by ``1 / (s_i^2 + tau^2)``;
 * the 90 % interval of ``theta`` by Hartung-Knapp-Sidik-Jonkman: a t interval with
   ``k - 1`` degrees of freedom on the weighted residual variance (never narrower than the
-  DerSimonian-Laird standard error), which keeps its level with few traces where the
-  plain normal interval does not;
+  plain standard error ``1 / sqrt(sum of the weights)``), which keeps its level with few
+  traces where the plain normal interval does not;
 * the 90 % interval of ``tau`` by the Q-profile (Viechtbauer 2007): the values of
   ``tau^2`` at which the generalised Q statistic equals the 95 % and 5 % quantiles of
   chi-square with ``k - 1`` degrees of freedom.
@@ -52,8 +56,8 @@ class Combined:
         Degrees of freedom of the mean's t interval (``n - 1``; ``inf``: one trace,
         a normal interval on its own standard error).
     tau, tau_low90, tau_high90
-        The spread between traces beyond their measurement errors, and its 90 %
-        Q-profile interval; ``None`` with fewer than two traces.
+        The spread between traces beyond their measurement errors (Paule-Mandel), and
+        its 90 % Q-profile interval; ``None`` with fewer than two traces.
     q
         Cochran's Q (heterogeneity statistic), ``None`` with fewer than two traces.
     """
@@ -115,8 +119,7 @@ def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Comb
     w = 1.0 / v
     mu_fixed = float(np.sum(w * y) / np.sum(w))
     q = float(np.sum(w * (y - mu_fixed) ** 2))
-    denom = float(np.sum(w) - np.sum(w**2) / np.sum(w))
-    tau2 = max(0.0, (q - (k - 1)) / denom) if denom > 0 else 0.0
+    tau2 = _q_profile(y, v, float(k - 1))  # Paule-Mandel
     ws = 1.0 / (v + tau2)
     mu = float(np.sum(ws * y) / np.sum(ws))
     q_hk = float(np.sum(ws * (y - mu) ** 2)) / (k - 1)

@@ -116,7 +116,7 @@ def population_table(results: pd.DataFrame, group_by: str | None = None) -> pd.D
                 "n_traces": comb.n, "mean": comb.mean, "stderr": comb.stderr,
                 "low_90": comb.low90, "high_90": comb.high90, "tau": comb.tau,
                 "tau_low_90": comb.tau_low90, "tau_high_90": comb.tau_high90, "q": comb.q,
-                "method": "DerSimonian-Laird, Hartung-Knapp mean interval, Q-profile tau",
+                "method": "Paule-Mandel tau, Hartung-Knapp mean interval, Q-profile tau interval",
             })
     return pd.DataFrame(rows)
 
@@ -393,7 +393,7 @@ def campaign_page(
                   "</h2>",
                   f"<img src='{e(figure)}' alt='a, b, c, mu per trace'>"]
     parts += ["<h2>Population (random effects)</h2>",
-              "<p class='small'>mean: DerSimonian–Laird weights, Hartung–Knapp 90 % interval; "
+              "<p class='small'>mean: weights 1/(s² + tau²), Hartung–Knapp 90 % interval; "
               "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
               "interval. Only traces with status ok.</p>",
               _html_table(population),
