@@ -287,6 +287,19 @@ def test_random_effects_intervals_hold_their_level():
     assert 0.85 <= mean_held / n <= 0.96 and 0.85 <= tau_held / n <= 0.95
 
 
+def test_random_effects_are_the_same_at_any_scale():
+    """tau and its interval scale with the data: the gap polynomial's p2 (~4e-9, tau^2
+    ~1e-19) once got an upper bound from brentq's absolute tolerance, not the data, and
+    Paule-Mandel's tau sits inside the Q-profile interval."""
+    rng = np.random.default_rng(3)
+    s = rng.uniform(0.05, 0.2, 100)
+    y = 3.8 + rng.normal(0.0, 0.3, 100) + rng.normal(0.0, s)
+    one, tiny = random_effects(y, s), random_effects(y * 1e-9, s * 1e-9)
+    for field in ("mean", "low90", "high90", "tau", "tau_low90", "tau_high90"):
+        assert getattr(tiny, field) == pytest.approx(getattr(one, field) * 1e-9, rel=1e-6)
+    assert one.tau_low90 <= one.tau <= one.tau_high90
+
+
 def test_random_effects_without_spread_is_the_weighted_mean():
     comb = random_effects([1.0, 1.0, 1.0], [0.1, 0.2, 0.2])
     assert comb.mean == pytest.approx(1.0) and comb.tau == 0.0 and comb.tau_low90 == 0.0

@@ -88,7 +88,10 @@ def _q_profile(y: np.ndarray, v: np.ndarray, target: float) -> float:
     hi = max(float(np.var(y)), float(np.max(v)))
     while _generalised_q(hi, y, v) > target:
         hi *= 10.0
-    return float(optimize.brentq(lambda t2: _generalised_q(t2, y, v) - target, 0.0, hi))
+    # (a tolerance relative to the bracket: tau^2 of the gap polynomial's p2 is ~1e-19,
+    # far below brentq's default absolute tolerance of 2e-12)
+    return float(optimize.brentq(lambda t2: _generalised_q(t2, y, v) - target, 0.0, hi,
+                                 xtol=hi * 1e-14))
 
 
 def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Combined | None:
