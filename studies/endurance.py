@@ -173,8 +173,9 @@ def main() -> None:
         "",
         f"The log: {log['samples']:,} samples at 1 kHz, one `through_c` apply every 10 s, "
         f"every channel; mu falls linearly from {mu0:g} by {-100 * MU_DRIFT:g} % over the "
-        f"log (true slope {slope_true:+.5f} / h), every other parameter constant. Simulated "
-        f"in {log['simulated_s']:.0f} s.",
+        f"log (true slope {slope_true:+.5f} / h), every other parameter constant. "
+        + (f"Simulated in {log['simulated_s']:.0f} s." if log["simulated_s"] == log["simulated_s"]
+           else "The logs of an earlier run of this script (--keep-logs)."),
         "",
         markdown_table(summary),
         "",
