@@ -231,21 +231,38 @@ def trend_figure(results: pd.DataFrame, against: str, trends: pd.DataFrame) -> b
 
 def split_figure(logs: Sequence[Any]) -> bytes:
     """Where each log (at most four shown) was split: the split channel over the whole
-    log with the fitted cycles shaded, and the first three cycles of the first log close
-    up with the threshold. ``logs``: :class:`ewb_ident.data.cycles.LogSplit` s."""
+    log with each cycle fitted marked above it (blue; partial: red); each cycle's apply
+    length and the time since the previous apply over the log (a missed or merged apply
+    stands out); and the first three cycles of the first log close up with the
+    threshold. ``logs``: :class:`ewb_ident.data.cycles.LogSplit` s."""
     shown = list(logs)[:4]
-    fig, axes = subplots(len(shown) + 1, 1, figsize=(7.5, 1.9 * (len(shown) + 1) + 0.5),
+    fig, axes = subplots(len(shown) + 2, 1, figsize=(7.5, 1.9 * (len(shown) + 2) + 0.5),
                          squeeze=False)
-    for ax, log in zip(axes[:-1, 0], shown, strict=True):
+    for ax, log in zip(axes[:len(shown), 0], shown, strict=True):
         split = log.split
-        ax.fill_between(*log.envelope, color="#333", lw=0.6, edgecolor="#333", zorder=3)
+        ax.fill_between(*log.envelope, color="#999", lw=0.4, edgecolor="#999")
+        level = split.top + 0.08 * (split.top - split.floor)
         for c in split.cycles:
-            ax.axvspan(c.t_start_s, c.t_end_s, color="#e8a0a0" if c.partial else "#a8c8f0",
-                       alpha=0.5, lw=0)
+            ax.plot([c.t_start_s, c.t_end_s], [level, level], lw=3, solid_capstyle="butt",
+                    color="#e03030" if c.partial else "#2060c0")
         ax.set_ylabel(split.channel, fontsize=8)
         done = len(split.complete)
-        ax.set_title(f"{log.name}: {done} cycles fitted (blue), "
+        ax.set_title(f"{log.name}: {done} cycles fitted (blue bars), "
                      f"{len(split.cycles) - done} partial (red)", fontsize=8)
+    ax = axes[len(shown), 0]
+    for log in shown:
+        rise = np.array([c.rise_s for c in log.split.cycles])
+        length = np.array([c.fall_s - c.rise_s for c in log.split.cycles])
+        ax.plot(rise, length, ".", ms=3, label=f"apply length ({log.name})" if len(shown) > 1
+                else "apply length")
+        if rise.size > 1:
+            ax.plot(rise[1:], np.diff(rise), ".", ms=3,
+                    label="time since the previous apply")
+    ax.set_ylabel("s", fontsize=8)
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title("each apply's length and the time since the previous one (a missed or "
+                 "merged apply stands out)", fontsize=8)
     ax = axes[-1, 0]
     log = shown[0]
     ax.plot(*log.zoom, color="#333", lw=0.7)
@@ -398,7 +415,11 @@ def campaign_page(
               "interval. Only traces with status ok.</p>",
               _html_table(population),
               "<h2>Files</h2><p>results.csv / results.parquet (one row per trace and "
-              "parameter), population.*, changes.*, batch.json (settings, inputs with hashes, "
+              "parameter), population.*"
+              + (", changes.*" if changes is not None else "")
+              + (", trend.*" if trends is not None else "")
+              + (", cycles.* and cycles/ (the cycles as traces)" if cycles is not None else "")
+              + ", batch.json (settings, inputs with hashes, "
               f"where it ran, versions).</p><p class='small'>{e(provenance['command'])}</p>",
               "</body></html>"]
     return "\n".join(parts)
