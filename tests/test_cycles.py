@@ -164,6 +164,20 @@ def test_split_on_a_missing_channel_is_one_line(log, tmp_path):
     assert "cannot split on 'pressure'" in got.output and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--group-by", "operator"], "--group-by operator: not a metadata column"),
+    (["--trend", "log"], "--trend log: the log's name is not a number"),
+    (["--scheduler", "tcp://127.0.0.1:1"], "no Dask scheduler answered"),
+])
+def test_a_bad_option_is_refused_before_the_log_is_split(log, tmp_path, extra, message):
+    root, _, _ = log
+    out = tmp_path / "o"
+    got = runner.invoke(app, ["batch", str(root / "log.parquet"), "--cycles", *extra,
+                              "--out", str(out)])
+    assert got.exit_code == 2 and message in got.output
+    assert not out.exists()  # no cycle written
+
+
 def test_trend_intervals_hold_their_level():
     """Seeded draws from the meta-regression model: the slope's 90 % interval holds the
     truth at about its nominal rate."""

@@ -112,26 +112,22 @@ def batch(
                                     reserved=RESULT_COLUMNS, exclude=out, logs=cycles)
     except CampaignError as err:
         fail(str(err))
-    split = None
-    if cycles:
-        campaign, split = _split_logs(campaign, out, split_on, fill_gaps, not no_unit_check)
-        trend = "time_h" if trend is None else trend
-        mapping = None  # the cycles are written in SI units under the trace format's names
     for old, new in campaign.renamed.items():
         typer.echo(f"{source}: metadata column {old!r} is {new!r} in the results table "
                    f"({old!r} is the parameter's unit there)", err=True)
     group_by = campaign.renamed.get(group_by, group_by)
+    # Every check of the command line before the logs are split (which writes cycles/).
+    from ewb_ident.data.cycles import CYCLE_COLUMNS
+
+    if cycles:
+        trend = "time_h" if trend is None else trend
+    columns = (*campaign.metadata_columns, *(CYCLE_COLUMNS if cycles else ()))
     for option, column in (("--group-by", group_by), ("--trend", trend)):
-        if column is not None and column not in campaign.metadata_columns:
-            have = ", ".join(campaign.metadata_columns) or "none (give a manifest)"
+        if column is not None and column not in columns:
+            have = ", ".join(columns) or "none (give a manifest)"
             fail(f"{option} {column}: not a metadata column of {source} (columns: {have})")
     if trend is not None:
-        _check_numeric(campaign, trend, source)
-    try:
-        jobs = [make_job(e, fill_gaps=fill_gaps, check_units=not no_unit_check,
-                         version=ewb_ident.__version__) for e in campaign.entries]
-    except OSError as err:
-        fail(f"{err.filename}: cannot read it ({err.strerror}); check its permissions")
+        _check_numeric(campaign, trend, source, cycles)
     client = None
     if scheduler is not None:
         from ewb_ident.study import ClusterError, connect
@@ -143,6 +139,16 @@ def batch(
         except ClusterError as err:
             fail(str(err))
     try:
+        split = None
+        if cycles:
+            campaign, split = _split_logs(campaign, out, split_on, fill_gaps,
+                                          not no_unit_check)
+            mapping = None  # the cycles are written in SI units under the format's names
+        try:
+            jobs = [make_job(e, fill_gaps=fill_gaps, check_units=not no_unit_check,
+                             version=ewb_ident.__version__) for e in campaign.entries]
+        except OSError as err:
+            fail(f"{err.filename}: cannot read it ({err.strerror}); check its permissions")
         _run(campaign, jobs, out, client, group_by, source,
              {"map": mapping, "r_eff_m": r_eff, "fill_gaps": fill_gaps,
               "check_units": not no_unit_check, "group_by": group_by, "stage": "chain",
@@ -193,7 +199,10 @@ def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool
     return cycles, (splits, table, {"rule": vars(rule), "logs": logs})
 
 
-def _check_numeric(campaign, column: str, source: str) -> None:
+def _check_numeric(campaign, column: str, source: str, cycles: bool) -> None:
+    if cycles and column == "log":
+        fail("--trend log: the log's name is not a number; fit the trend against time_h, "
+             "cycle, t_start_s or t_rise_s")
     values = [e.metadata.get(column) for e in campaign.entries]
     for v in values:
         if v is None:

@@ -34,6 +34,8 @@ from ewb_ident.data.trace import InputError, Trace
 
 #: Split channels, in the order of preference.
 SPLIT_CHANNELS = ("force_N", "x_m", "theta_deg")
+#: Metadata columns each cycle gets (after its log's own), see :func:`cycle_campaign`.
+CYCLE_COLUMNS = ("log", "cycle", "t_start_s", "t_rise_s", "time_h")
 
 
 class CycleError(InputError):
@@ -281,6 +283,6 @@ def cycle_campaign(
                 "t_rise_s": cycle.rise_s, "time_h": (cycle.rise_s - t0) / 3600.0}
             entries.append(Entry(str(path), path, meta, None, entry.r_eff_m))
         del log  # one log in memory at a time
-    columns = (*campaign.metadata_columns, "log", "cycle", "t_start_s", "t_rise_s", "time_h")
+    columns = (*campaign.metadata_columns, *CYCLE_COLUMNS)
     cycles = Campaign(campaign.source, "cycles", tuple(entries), columns, campaign.renamed)
     return cycles, splits, pd.DataFrame(rows)
