@@ -207,13 +207,17 @@ def _bad_inputs(root: Path) -> dict[str, tuple[list[str], str]]:
         "trace as manifest": ([str(root / "v1_0.csv")], "it looks like a trace, not a manifest"),
         "group-by": ([m, "--group-by", "operator"], "--group-by operator: not a metadata column"),
         "r_eff": ([m, "--r-eff", "3"], "r_eff_m must be a pad radius"),
+        "trend column": ([m, "--trend", "cycle"], "--trend cycle: not a metadata column"),
+        "trend text": ([m, "--trend", "hardware"], "--trend hardware: 'v1' is not a number"),
+        "split-on alone": ([m, "--split-on", "force_N"], "--split-on is a setting of --cycles"),
         "unreachable": ([m, "--scheduler", "tcp://127.0.0.1:1"], "no Dask scheduler answered"),
     }
 
 
 @pytest.mark.parametrize("case", ["no path column", "empty", "missing file", "unreadable",
                                   "no source", "empty glob", "trace as manifest", "group-by",
-                                  "r_eff", "unreachable"])
+                                  "r_eff", "trend column", "trend text", "split-on alone",
+                                  "unreachable"])
 def test_bad_input_is_one_line_exit_2_and_nothing_written(campaign, tmp_path, case):
     args, message = _bad_inputs(campaign)[case]
     out = tmp_path / "out"
@@ -281,6 +285,19 @@ def test_random_effects_intervals_hold_their_level():
         mean_held += comb.low90 <= 10.0 <= comb.high90
         tau_held += comb.tau_low90 <= 1.5 <= comb.tau_high90
     assert 0.85 <= mean_held / n <= 0.96 and 0.85 <= tau_held / n <= 0.95
+
+
+def test_random_effects_are_the_same_at_any_scale():
+    """tau and its interval scale with the data: the gap polynomial's p2 (~4e-9, tau^2
+    ~1e-19) once got an upper bound from brentq's absolute tolerance, not the data, and
+    Paule-Mandel's tau sits inside the Q-profile interval."""
+    rng = np.random.default_rng(3)
+    s = rng.uniform(0.05, 0.2, 100)
+    y = 3.8 + rng.normal(0.0, 0.3, 100) + rng.normal(0.0, s)
+    one, tiny = random_effects(y, s), random_effects(y * 1e-9, s * 1e-9)
+    for field in ("mean", "low90", "high90", "tau", "tau_low90", "tau_high90"):
+        assert getattr(tiny, field) == pytest.approx(getattr(one, field) * 1e-9, rel=1e-6)
+    assert one.tau_low90 <= one.tau <= one.tau_high90
 
 
 def test_random_effects_without_spread_is_the_weighted_mean():

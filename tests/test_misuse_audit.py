@@ -549,7 +549,7 @@ def test_parquet_and_mat_obey_the_csv_length_limit_before_loading(tmp_path, suff
         import scipy.io
 
         scipy.io.savemat(path, columns)
-    with pytest.raises(TraceError, match=r"too long: about 600,001 rows; this tool reads at most"):
+    with pytest.raises(TraceError, match=r"too long: about 600,001 rows; a trace is at most"):
         ei.read_trace(path)
 
 

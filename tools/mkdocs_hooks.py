@@ -6,7 +6,7 @@ Three things the pages in ``docs/`` cannot hold by themselves:
   itself: every command of ``ewb-ident``, its description, a table of its arguments and
   options, and its ``--help`` as the terminal prints it. It cannot fall behind the code.
 * **The benchmarks page** (``docs/benchmarks.md``) holds every generated
-  ``reports/bench_*.md`` (what ``python benchmarks/bench_*.py`` last wrote).
+  ``reports/bench_*.md`` (what ``python -m benchmarks.bench_*`` last wrote).
 * **Files of the repository outside ``docs/``** that a page links to (the README, the
   changelog, a study's report and its figures) are published under ``repo/`` with the
   same path, and the links to them are rewritten to point there. A link from a page of

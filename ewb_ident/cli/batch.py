@@ -55,15 +55,43 @@ def batch(
             show_default=False,
         ),
     ] = None,
+    cycles: Annotated[
+        bool,
+        typer.Option(
+            "--cycles",
+            help="SOURCE is a long recording (an endurance log; or a folder, glob or manifest "
+            "of them): split each into its apply cycles and fit every cycle. Writes "
+            "OUT/cycles/ (the cycles as traces), cycles.{csv,parquet,png} (the split) and "
+            "trend.* (each parameter against time_h).",
+        ),
+    ] = False,
+    split_on: Annotated[
+        str | None,
+        typer.Option(
+            "--split-on",
+            help="Channel the cycles are found on (default: force_N, else x_m, else "
+            "theta_deg).",
+            show_default=False,
+        ),
+    ] = None,
+    trend: Annotated[
+        str | None,
+        typer.Option(
+            help="Numeric metadata column each parameter's linear trend is fitted against "
+            "(trend.*; default with --cycles: time_h, hours into the log).",
+            show_default=False,
+        ),
+    ] = None,
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
     r_eff: REff = None,
 ) -> None:
     """Refit every trace of a campaign (whole chain): writes OUT/results.{parquet,csv},
-    OUT/population.*, OUT/changes.* (with --group-by), OUT/index.html and OUT/batch.json.
-    A rerun into the same OUT reuses the traces whose files and settings are unchanged.
-    Exits 3 when a trace failed, did not converge or is outside the acceptance."""
+    OUT/population.*, OUT/changes.* (with --group-by), OUT/trend.* (with --trend or
+    --cycles), OUT/index.html and OUT/batch.json. A rerun into the same OUT reuses the
+    traces whose files and settings are unchanged. Exits 3 when a trace failed, did not
+    converge or is outside the acceptance."""
     import math
 
     from ewb_ident.study import CONNECT_TIMEOUT_S, WORKER_TIMEOUT_S
@@ -77,23 +105,29 @@ def batch(
     from ewb_ident.inference.batch import make_job
     from ewb_ident.reporting.campaign import RESULT_COLUMNS
 
+    if split_on is not None and not cycles:
+        fail("--split-on is a setting of --cycles; add --cycles or drop it")
     try:
         campaign = resolve_campaign(source, mapping=mapping, r_eff_m=r_eff,
-                                    reserved=RESULT_COLUMNS, exclude=out)
+                                    reserved=RESULT_COLUMNS, exclude=out, logs=cycles)
     except CampaignError as err:
         fail(str(err))
     for old, new in campaign.renamed.items():
         typer.echo(f"{source}: metadata column {old!r} is {new!r} in the results table "
                    f"({old!r} is the parameter's unit there)", err=True)
     group_by = campaign.renamed.get(group_by, group_by)
-    if group_by is not None and group_by not in campaign.metadata_columns:
-        have = ", ".join(campaign.metadata_columns) or "none (give a manifest)"
-        fail(f"--group-by {group_by}: not a metadata column of {source} (columns: {have})")
-    try:
-        jobs = [make_job(e, fill_gaps=fill_gaps, check_units=not no_unit_check,
-                         version=ewb_ident.__version__) for e in campaign.entries]
-    except OSError as err:
-        fail(f"{err.filename}: cannot read it ({err.strerror}); check its permissions")
+    # Every check of the command line before the logs are split (which writes cycles/).
+    from ewb_ident.data.cycles import CYCLE_COLUMNS
+
+    if cycles:
+        trend = "time_h" if trend is None else trend
+    columns = (*campaign.metadata_columns, *(CYCLE_COLUMNS if cycles else ()))
+    for option, column in (("--group-by", group_by), ("--trend", trend)):
+        if column is not None and column not in columns:
+            have = ", ".join(columns) or "none (give a manifest)"
+            fail(f"{option} {column}: not a metadata column of {source} (columns: {have})")
+    if trend is not None:
+        _check_numeric(campaign, trend, source, cycles)
     client = None
     if scheduler is not None:
         from ewb_ident.study import ClusterError, connect
@@ -105,16 +139,83 @@ def batch(
         except ClusterError as err:
             fail(str(err))
     try:
+        split = None
+        if cycles:
+            campaign, split = _split_logs(campaign, out, split_on, fill_gaps,
+                                          not no_unit_check)
+            mapping = None  # the cycles are written in SI units under the format's names
+        try:
+            jobs = [make_job(e, fill_gaps=fill_gaps, check_units=not no_unit_check,
+                             version=ewb_ident.__version__) for e in campaign.entries]
+        except OSError as err:
+            fail(f"{err.filename}: cannot read it ({err.strerror}); check its permissions")
         _run(campaign, jobs, out, client, group_by, source,
              {"map": mapping, "r_eff_m": r_eff, "fill_gaps": fill_gaps,
               "check_units": not no_unit_check, "group_by": group_by, "stage": "chain",
-              "worker_timeout_s": worker_timeout})
+              "worker_timeout_s": worker_timeout, "trend": trend, "cycles": cycles,
+              "split": None if split is None else split[2]},
+             split)
     finally:
         if client is not None:
             client.close()
 
 
-def _run(campaign, jobs, out: Path, client, group_by, source: str, settings) -> None:
+def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool):
+    """The campaign of the logs' apply cycles, their files written under OUT/cycles/;
+    a log that cannot be read or split is one line, exit 2, and no cycle file is left."""
+    import shutil
+    import time
+
+    from ewb_ident.data.campaign import file_hash
+    from ewb_ident.data.cycles import CycleRule, cycle_campaign
+    from ewb_ident.data.trace import InputError
+
+    rule = CycleRule(channel=channel)
+    folder = out / "cycles"
+    made_out, made = not out.exists(), not folder.exists()
+    t0 = time.perf_counter()
+    try:
+        cycles, splits, table = cycle_campaign(campaign, folder, rule=rule,
+                                               fill_gaps=fill_gaps, check_units=check_units)
+    except InputError as err:
+        if made:
+            shutil.rmtree(folder, ignore_errors=True)
+        if made_out and out.exists() and not any(out.iterdir()):
+            out.rmdir()
+        fail(str(err))
+    except BaseException:
+        if made:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+    for log in splits:
+        s = log.split
+        typer.echo(f"{log.name}: {len(s.complete)} apply cycles ({len(s.cycles) - len(s.complete)}"
+                   f" partial, not fitted) where {s.channel} rises above {s.threshold:.4g}; "
+                   f"read and split in {time.perf_counter() - t0:.1f} s", err=True)
+    logs = [{"log": e.trace, "sha256": file_hash(e.path), "channel": s.split.channel,
+             "threshold": s.split.threshold, "cycles": len(s.split.complete),
+             "partial": len(s.split.cycles) - len(s.split.complete)}
+            for e, s in zip(campaign.entries, splits, strict=True)]
+    return cycles, (splits, table, {"rule": vars(rule), "logs": logs})
+
+
+def _check_numeric(campaign, column: str, source: str, cycles: bool) -> None:
+    if cycles and column == "log":
+        fail("--trend log: the log's name is not a number; fit the trend against time_h, "
+             "cycle, t_start_s or t_rise_s")
+    values = [e.metadata.get(column) for e in campaign.entries]
+    for v in values:
+        if v is None:
+            continue
+        try:
+            float(v)
+        except (TypeError, ValueError):
+            fail(f"--trend {column}: {v!r} is not a number; the trend is fitted against a "
+                 f"numeric column of {source} (a time, a cycle count, a date as days)")
+
+
+def _run(campaign, jobs, out: Path, client, group_by, source: str, settings,
+         split=None) -> None:
     from ewb_ident.study import cluster_description, run_batch
 
     where = cluster_description(client)
@@ -135,10 +236,11 @@ def _run(campaign, jobs, out: Path, client, group_by, source: str, settings) -> 
     for status in ("ok", "error", "not_converged", "poor_fit"):
         counts[status] = sum(r["status"] == status for r in records)
     provenance = _provenance(campaign, jobs, records, where, settings, counts)
-    _write(out, campaign, records, group_by, provenance)
+    _write(out, campaign, records, group_by, provenance, settings["trend"], split)
     typer.echo(f"{reused} reused, {fitted} fitted; wrote {out / 'results.parquet'}, "
-               f"results.csv, population.*{', changes.*' if group_by else ''}, index.html and "
-               "batch.json")
+               f"results.csv, population.*{', changes.*' if group_by else ''}"
+               f"{', trend.*' if settings['trend'] else ''}"
+               f"{', cycles.*' if settings['cycles'] else ''}, index.html and batch.json")
     bad = len(jobs) - counts["ok"]
     if bad:
         typer.echo(f"{bad} of {len(jobs)} traces not trustworthy: {counts['error']} failed, "
@@ -183,7 +285,7 @@ def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, A
     }
 
 
-def _write(out: Path, campaign, records, group_by, provenance) -> None:
+def _write(out: Path, campaign, records, group_by, provenance, trend, split) -> None:
     from ewb_ident.data.outputs import json_writer, null_nonfinite, write_run
     from ewb_ident.reporting.campaign import (
         campaign_page,
@@ -191,6 +293,9 @@ def _write(out: Path, campaign, records, group_by, provenance) -> None:
         parameter_figure,
         population_table,
         results_table,
+        split_figure,
+        trend_figure,
+        trend_table,
     )
 
     results = results_table(records, [e.metadata for e in campaign.entries],
@@ -199,13 +304,22 @@ def _write(out: Path, campaign, records, group_by, provenance) -> None:
     changes = changes_table(results, group_by) if group_by else None
     if changes is not None:
         changes.attrs["group_by"] = group_by
-    png = parameter_figure(results, group_by)
+    trends = trend_table(results, trend) if trend is not None else None
+    png = (trend_figure(results, trend, trends) if trend is not None
+           else parameter_figure(results, group_by))
+    split_png = split_figure(split[0]) if split is not None else None
     page = campaign_page(results, population, changes, against=group_by,
                          figure=None if png is None else "parameters.png",
-                         provenance=provenance)
+                         provenance=provenance, trends=trends,
+                         cycles=None if split is None else split[1],
+                         split_file=None if split_png is None else "cycles.png")
     tables = {"results": results, "population": population}
     if changes is not None:
         tables["changes"] = changes
+    if trends is not None:
+        tables["trend"] = trends
+    if split is not None:
+        tables["cycles"] = split[1]
     writers = []
     for name, frame in tables.items():
         writers += [
@@ -214,6 +328,8 @@ def _write(out: Path, campaign, records, group_by, provenance) -> None:
         ]
     if png is not None:
         writers.append((out / "parameters.png", lambda tmp: tmp.write_bytes(png)))
+    if split_png is not None:
+        writers.append((out / "cycles.png", lambda tmp: tmp.write_bytes(split_png)))
     writers += [
         (out / "batch.json", json_writer(null_nonfinite(provenance))),
         (out / "index.html", lambda tmp: tmp.write_text(page, encoding="utf-8")),
@@ -222,10 +338,10 @@ def _write(out: Path, campaign, records, group_by, provenance) -> None:
     # run did not write (no --group-by, no plotted parameter) would contradict it.
     with writing(out):
         write_run(out, "batch", writers)
-    _echo_tables(population, changes)
+    _echo_tables(population, changes, trends)
 
 
-def _echo_tables(population, changes) -> None:
+def _echo_tables(population, changes, trends=None) -> None:
     from ewb_ident.data.units import shown_unit
 
     def shown(unit: str, v) -> str:
@@ -246,3 +362,10 @@ def _echo_tables(population, changes) -> None:
             f"{r.parameter} {r.before} -> {r.after} {r.delta_pct:+.1f} % "
             f"[{100 * r.low_90 / r.before_mean:+.1f}, {100 * r.high_90 / r.before_mean:+.1f}] %"
             for r in moved.itertuples()) or "no parameter (P(|change| > tolerance) > 0.95)"))
+    if trends is not None and not trends.empty:
+        every = trends[trends["group"] == "all"]
+        typer.echo(f"trend against {every['against'].iloc[0]} (drift over its range, 90 % "
+                   "interval; * : P(|drift| > tolerance) > 0.95):")
+        for r in every.itertuples():
+            typer.echo(f"  {r.parameter:<5} {r.drift_pct:+.2f} % [{r.drift_low_90_pct:+.2f}, "
+                       f"{r.drift_high_90_pct:+.2f}] %{'  *' if r.trend else ''}")

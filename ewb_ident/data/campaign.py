@@ -207,6 +207,23 @@ def read_manifest(
     return Campaign(str(path), "manifest", tuple(entries), meta_cols, renamed)
 
 
+def _is_manifest(path: Path) -> bool:
+    """Whether a table has a ``path`` column (a manifest), from its header alone."""
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".csv":
+            with open(path, encoding="utf-8-sig", errors="replace") as handle:
+                header = handle.readline()
+            return "path" in [c.strip().strip('"') for c in header.replace(";", ",").split(",")]
+        if suffix == ".parquet":
+            import pyarrow.parquet as pq
+
+            return "path" in pq.ParquetFile(path).schema_arrow.names
+    except Exception:  # an unreadable file: the log reader says what is wrong
+        return False
+    return False
+
+
 def resolve_campaign(
     source: str,
     *,
@@ -214,11 +231,14 @@ def resolve_campaign(
     r_eff_m: float | None = None,
     reserved: tuple[str, ...] = (),
     exclude: Path | None = None,
+    logs: bool = False,
 ) -> Campaign:
     """The campaign named by a folder, a glob or a manifest (see :func:`read_manifest`).
 
     ``exclude``: a folder whose files a folder or glob never takes (the batch's own
-    output folder, whose tables are not traces).
+    output folder, whose tables are not traces). ``logs``: the files are long logs to
+    split into cycles, and a single file without a ``path`` column is one such log, not a
+    manifest.
 
     Raises
     ------
@@ -236,6 +256,8 @@ def resolve_campaign(
         if not files:
             raise CampaignError(f"{source}: the folder holds no trace files "
                                 f"({', '.join(SUFFIXES)}); name another folder or a manifest")
+    elif path.is_file() and logs and not _is_manifest(path):
+        return Campaign(source, "file", (Entry(source, path, {}, mapping, r_eff_m),), ())
     elif path.is_file():
         return read_manifest(path, mapping=mapping, r_eff_m=r_eff_m, reserved=reserved)
     elif any(ch in source for ch in "*?["):

@@ -3,19 +3,20 @@ missing samples; then validation."""
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import os
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ewb_ident.data.tables import MAX_LOG_SAMPLES as MAX_LOG_SAMPLES
+from ewb_ident.data.tables import MAX_SAMPLES as MAX_SAMPLES
+from ewb_ident.data.tables import SUFFIXES as SUFFIXES
+from ewb_ident.data.tables import read_table
 from ewb_ident.data.trace import COLUMNS, MAX_GAP, NanPolicy, Trace, column_label, raise_trace_error
 from ewb_ident.data.units import convert_unit, load_mapping
 from ewb_ident.data.validation import (
@@ -25,228 +26,6 @@ from ewb_ident.data.validation import (
     parse_stages,
     validate,
 )
-
-#: Most samples a trace may have (10 minutes at 1 kHz), checked before parsing.
-MAX_SAMPLES = 600_000
-
-#: Table suffixes :func:`read_trace` understands.
-SUFFIXES: tuple[str, ...] = (".csv", ".parquet", ".mat")
-
-
-# --------------------------------------------------------------------------- reading
-
-
-@dataclass
-class _Raw:
-    """A table as read: column names in file order and their raw values."""
-
-    names: list[str]
-    values: dict[str, Any]
-    #: How a CSV was read when not comma-separated with decimal points (e.g. "';'-
-    #: separated, decimal comma"), else "".
-    dialect: str = ""
-
-
-#: A cell written with a decimal comma (``-1,25``, ``3,5E-3``, ``1.234,5``).
-_DECIMAL_COMMA = re.compile(r"\s*[+-]?(?:\d{1,3}(?:\.\d{3})+|\d*),\d+(?:[eE][+-]?\d+)?\s*")
-
-
-def _dialect(text: str) -> tuple[str, bool]:
-    """The separator of a CSV text (``,``, ``;`` or a tab, from its header) and whether
-    its numbers use a decimal comma (only possible when the separator is not a comma)."""
-    first = text.split("\n", 1)[0]
-    delim = ","
-    if ";" in first and first.count(";") >= first.count(","):
-        delim = ";"
-    elif "\t" in first and first.count("\t") >= first.count(","):
-        delim = "\t"
-    if delim == ",":
-        return delim, False
-    head = text.split("\n", 200)[1:200]
-    comma = any(_DECIMAL_COMMA.fullmatch(c) for line in head for c in line.split(delim))
-    return delim, comma
-
-
-def _decimal_point(cell: str) -> str:
-    """A decimal-comma number written with a point (thousands points dropped)."""
-    if not _DECIMAL_COMMA.fullmatch(cell):
-        return cell
-    return cell.replace(".", "").replace(",", ".")
-
-
-def _check_header(names: list[str], label: str) -> None:
-    if not names or all(not n for n in names):
-        raise_trace_error(
-            label, "no header row", "add a header row with the column names (time_s, ...)"
-        )
-    if len(names) == 1 and (";" in names[0] or "\t" in names[0]):
-        sep = "';'" if ";" in names[0] else "a tab"
-        raise_trace_error(
-            label,
-            f"the header {names[0]!r} is one column: the file seems to use {sep} as separator",
-            "export with ',' between columns and '.' as decimal point",
-        )
-
-    def is_number(text: str) -> bool:
-        try:
-            float(text)
-        except ValueError:
-            return False
-        return True
-
-    if all(is_number(n) for n in names):
-        raise_trace_error(
-            label,
-            f"no header row: the first row {','.join(names[:4])!r} holds numbers",
-            "add a header row with the column names (time_s, voltage_V, ...)",
-        )
-    first: dict[str, int] = {}
-    for j, name in enumerate(names, start=1):
-        if not name:
-            raise_trace_error(label, f"column {j} of the header has no name", "name every column")
-        if name in first:
-            raise_trace_error(
-                label,
-                f"the header names this column twice (columns {first[name]} and {j})",
-                "rename or drop one of them",
-                column=f"column {name!r}",
-            )
-        first[name] = j
-
-
-def _count_lines(path: Path) -> int:
-    """Lines in a file, counted in binary blocks (no parsing)."""
-    n = 0
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            n += block.count(b"\n")
-    return n
-
-
-def _check_length(rows: int, label: str) -> None:
-    """Refuse a table longer than :data:`MAX_SAMPLES`, from its size before it is read
-    (CSV lines, Parquet footer, MATLAB headers): one limit for every format."""
-    if rows > MAX_SAMPLES:
-        raise_trace_error(
-            label,
-            f"too long: about {rows:,} rows; this tool reads at most {MAX_SAMPLES:,} "
-            "samples (10 min at 1 kHz)",
-            "split the recording into brake applications and fit them together",
-        )
-
-
-def _read_csv(path: Path, label: str) -> _Raw:
-    lines = _count_lines(path)
-    if lines > MAX_SAMPLES + 2:
-        _check_length(lines - 1, label)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as handle:
-            text = handle.read()
-        delim, comma = _dialect(text)
-        rows = list(csv.reader(io.StringIO(text, newline=""), delimiter=delim))
-    except UnicodeDecodeError:
-        raise_trace_error(label, "not a UTF-8 text file", "export the log as a comma-separated CSV")
-    except csv.Error as err:
-        raise_trace_error(
-            label, f"not a readable CSV file ({err})", "export the log as a plain CSV"
-        )
-    while rows and not any(cell.strip() for cell in rows[-1]):
-        rows.pop()
-    if not rows:
-        raise_trace_error(
-            label, "the file is empty", "export the log with a header row and the samples"
-        )
-    names = [name.strip() for name in rows[0]]
-    _check_header(names, label)
-    body = rows[1:]
-    if not body:
-        raise_trace_error(label, "the header has no data rows under it", "export the samples too")
-    width = len(names)
-    for i, fields in enumerate(body, start=1):
-        if len(fields) != width:
-            problem = (
-                "blank line"
-                if not fields
-                else f"{len(fields)} fields {','.join(fields)[:60]!r}, the header has {width}"
-            )
-            raise_trace_error(
-                label,
-                problem,
-                "every row needs one value per column (a missing value is an empty cell)",
-                row=i,
-            )
-    if comma:
-        body = [[_decimal_point(c) for c in fields] for fields in body]
-    columns = list(zip(*body, strict=True))
-    values = {name: np.array(columns[j], dtype=object) for j, name in enumerate(names)}
-    dialect = ""
-    if delim != "," or comma:
-        sep = {";": "';'-separated", "\t": "tab-separated", ",": "comma-separated"}[delim]
-        dialect = sep + (", decimal comma" if comma else "")
-    return _Raw(names, values, dialect)
-
-
-def _read_parquet(path: Path, label: str) -> _Raw:
-    import pyarrow.parquet as pq
-
-    try:
-        rows = pq.ParquetFile(path).metadata.num_rows  # from the footer, nothing loaded
-    except Exception as err:  # pyarrow raises several types for damaged files
-        raise_trace_error(
-            label, f"not a readable Parquet file ({type(err).__name__}: {err})", "re-export"
-        )
-    _check_length(rows, label)
-    try:
-        table = pq.read_table(path)
-    except Exception as err:  # pyarrow raises several types for damaged files
-        raise_trace_error(
-            label, f"not a readable Parquet file ({type(err).__name__}: {err})", "re-export"
-        )
-    names = [str(n).strip() for n in table.column_names]
-    if not names:
-        raise_trace_error(label, "the file has no columns", "export the log with its columns")
-    _check_header(names, label)
-    if table.num_rows == 0:
-        raise_trace_error(label, "the table has no rows", "export the samples too")
-    values = {name: table.column(j).to_numpy(zero_copy_only=False) for j, name in enumerate(names)}
-    return _Raw(names, values)
-
-
-def _read_mat(path: Path, label: str) -> _Raw:
-    import scipy.io
-
-    try:  # the variables' shapes from the file's headers, nothing loaded
-        shapes = [shape for _, shape, _ in scipy.io.whosmat(path)]
-    except Exception:  # v7.3 and damaged files: loadmat below says which
-        shapes = []
-    _check_length(max((math.prod(shape) for shape in shapes), default=0), label)
-    try:
-        content = scipy.io.loadmat(path, simplify_cells=True)
-    except NotImplementedError:
-        raise_trace_error(
-            label,
-            "MATLAB v7.3 (HDF5) files are not supported",
-            "save with save(..., '-v7') or export CSV",
-        )
-    except Exception as err:  # scipy raises several types for damaged files
-        raise_trace_error(
-            label, f"not a readable MATLAB file ({type(err).__name__}: {err})", "re-export"
-        )
-    variables = {k: v for k, v in content.items() if not k.startswith("__")}
-    if len(variables) == 1 and isinstance(next(iter(variables.values())), dict):
-        variables = next(iter(variables.values()))
-    if not variables:
-        raise_trace_error(label, "the file holds no variables", "save the channels as vectors")
-    structs = [k for k, v in variables.items() if isinstance(v, dict)]
-    if structs:
-        raise_trace_error(
-            label,
-            f"variable {structs[0]!r} is a struct, not a vector",
-            "save the channels as vectors of the same length, or as one struct of vectors",
-        )
-    names = [str(n).strip() for n in variables]
-    _check_header(names, label)
-    return _Raw(names, dict(zip(names, variables.values(), strict=True)))
 
 
 def _missing_text(value: Any) -> bool:
@@ -278,7 +57,7 @@ def _to_float(raw: Any, label: str, column: str) -> np.ndarray:
         )
     kind = arr.dtype.kind
     if kind in "fiu":
-        return arr.astype(np.float64)
+        return arr.astype(np.float64, copy=False)  # the table's own array: no copy
     if kind == "b":
         raise_trace_error(
             label, "holds true/false values, not numbers", "export the numbers", column=column
@@ -371,34 +150,6 @@ def _read_sidecar(path: Path) -> dict[str, Any]:
     return data
 
 
-def _read_table(path: Path, label: str) -> _Raw:
-    suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
-        raise_trace_error(
-            label,
-            f"unknown file type {path.suffix!r}",
-            f"use one of {', '.join(SUFFIXES)}",
-        )
-    if not path.exists():
-        raise_trace_error(label, "no such file", "check the path")
-    if not path.is_file():
-        raise_trace_error(label, "not a file", "give the path of a trace table")
-    try:
-        if path.stat().st_size == 0:
-            raise_trace_error(
-                label, "the file is empty", "export the log with a header row and the samples"
-            )
-        if suffix == ".csv":
-            return _read_csv(path, label)
-        if suffix == ".parquet":
-            return _read_parquet(path, label)
-        return _read_mat(path, label)
-    except OSError as err:
-        raise_trace_error(
-            label, f"cannot read the file ({err.strerror or err})", "check the path and rights"
-        )
-
-
 def _nan_runs(missing: np.ndarray) -> list[tuple[int, int]]:
     """Runs of True as ``(start, stop)`` index pairs."""
     edges = np.diff(np.concatenate(([0], missing.astype(np.int8), [0])))
@@ -461,6 +212,7 @@ def read_trace(
     stages: Iterable[str] | str | None = None,
     nan_policy: NanPolicy = "raise",
     check_units: bool = True,
+    max_samples: int = MAX_SAMPLES,
 ) -> Trace:
     """Read and validate one rig trace.
 
@@ -482,6 +234,9 @@ def read_trace(
         at most :data:`MAX_GAP` samples linearly (counts in ``sidecar["_filled"]``).
     check_units
         Refuse values whose size suggests a wrong unit (see :func:`validate`).
+    max_samples
+        Longest table read (:data:`MAX_SAMPLES`, 10 min at 1 kHz, for a trace to fit;
+        up to :data:`MAX_LOG_SAMPLES` for a long log that is split into cycles).
 
     Returns
     -------
@@ -505,7 +260,7 @@ def read_trace(
     stage_list = parse_stages(stages, label)
     maps = load_mapping(mapping)
 
-    raw = _read_table(path, label)
+    raw = read_table(path, label, min(max_samples, MAX_LOG_SAMPLES))
     selected: dict[str, str] = {}  # target -> source
     ignored: list[str] = []
     for name in raw.names:

@@ -6,12 +6,16 @@ robust one). The traces of a campaign are of several rig units, days and tempera
 so their true values differ: ``y_i = theta + u_i + e_i`` with ``u_i ~ N(0, tau^2)`` the
 trace-to-trace (unit-to-unit) spread and ``e_i ~ N(0, s_i^2)`` the measurement error.
 
-* ``tau^2`` by DerSimonian and Laird's moment estimator, ``theta`` as the mean weighted by
-  ``1 / (s_i^2 + tau^2)``;
+* ``tau^2`` by Paule and Mandel's estimator: the ``tau^2`` at which the generalised Q
+  statistic equals its expectation ``k - 1`` (so it always lies inside the Q-profile
+  interval below; DerSimonian and Laird's moment estimator, used before, need not: on a
+  campaign of traces at 100 Hz to 1 kHz, whose standard errors differ a
+  hundredfold, it fell outside for 9 of 26 groups x parameters), ``theta`` as the mean
+  weighted by ``1 / (s_i^2 + tau^2)``;
 * the 90 % interval of ``theta`` by Hartung-Knapp-Sidik-Jonkman: a t interval with
   ``k - 1`` degrees of freedom on the weighted residual variance (never narrower than the
-  DerSimonian-Laird standard error), which keeps its level with few traces where the
-  plain normal interval does not;
+  plain standard error ``1 / sqrt(sum of the weights)``), which keeps its level with few
+  traces where the plain normal interval does not;
 * the 90 % interval of ``tau`` by the Q-profile (Viechtbauer 2007): the values of
   ``tau^2`` at which the generalised Q statistic equals the 95 % and 5 % quantiles of
   chi-square with ``k - 1`` degrees of freedom.
@@ -52,8 +56,8 @@ class Combined:
         Degrees of freedom of the mean's t interval (``n - 1``; ``inf``: one trace,
         a normal interval on its own standard error).
     tau, tau_low90, tau_high90
-        The spread between traces beyond their measurement errors, and its 90 %
-        Q-profile interval; ``None`` with fewer than two traces.
+        The spread between traces beyond their measurement errors (Paule-Mandel), and
+        its 90 % Q-profile interval; ``None`` with fewer than two traces.
     q
         Cochran's Q (heterogeneity statistic), ``None`` with fewer than two traces.
     """
@@ -84,7 +88,10 @@ def _q_profile(y: np.ndarray, v: np.ndarray, target: float) -> float:
     hi = max(float(np.var(y)), float(np.max(v)))
     while _generalised_q(hi, y, v) > target:
         hi *= 10.0
-    return float(optimize.brentq(lambda t2: _generalised_q(t2, y, v) - target, 0.0, hi))
+    # (a tolerance relative to the bracket: tau^2 of the gap polynomial's p2 is ~1e-19,
+    # far below brentq's default absolute tolerance of 2e-12)
+    return float(optimize.brentq(lambda t2: _generalised_q(t2, y, v) - target, 0.0, hi,
+                                 xtol=hi * 1e-14))
 
 
 def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Combined | None:
@@ -115,8 +122,7 @@ def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Comb
     w = 1.0 / v
     mu_fixed = float(np.sum(w * y) / np.sum(w))
     q = float(np.sum(w * (y - mu_fixed) ** 2))
-    denom = float(np.sum(w) - np.sum(w**2) / np.sum(w))
-    tau2 = max(0.0, (q - (k - 1)) / denom) if denom > 0 else 0.0
+    tau2 = _q_profile(y, v, float(k - 1))  # Paule-Mandel
     ws = 1.0 / (v + tau2)
     mu = float(np.sum(ws * y) / np.sum(ws))
     q_hk = float(np.sum(ws * (y - mu) ** 2)) / (k - 1)
@@ -169,3 +175,95 @@ def group_change(
     else:
         p, lo, hi, sd = None, None, None, None
     return ParameterChange(name, before.mean, after.mean, d, sd, lo, hi, tol, p)
+
+
+@dataclass(frozen=True)
+class Trend:
+    """A parameter's linear trend against a covariate (time, cycle number ...), from
+    per-trace estimates: the random-effects meta-regression ``y_i = beta0 + beta1 x_i +
+    u_i + e_i`` (``u_i ~ N(0, tau^2)`` the scatter about the line beyond the measurement
+    errors, ``e_i ~ N(0, s_i^2)``).
+
+    Attributes
+    ----------
+    n
+        Traces used.
+    slope, slope_low90, slope_high90
+        ``beta1`` (parameter unit per covariate unit) and its 90 % interval (Knapp-Hartung
+        t interval with ``n - 2`` degrees of freedom).
+    x_first, x_last
+        The covariate's range.
+    change
+        The drift over that range, ``beta1 (x_last - x_first)``, as a change from the
+        line's value at ``x_first`` to its value at ``x_last``, with its 90 % interval,
+        practical tolerance and ``P(|drift| > tolerance)`` (:class:`ParameterChange`;
+        ``changed``: a trend, decided as ``compare`` decides a change).
+    tau
+        The scatter about the line beyond the measurement errors (method of moments).
+    """
+
+    n: int
+    slope: float
+    slope_stderr: float
+    slope_low90: float
+    slope_high90: float
+    df: float
+    x_first: float
+    x_last: float
+    change: ParameterChange
+    tau: float
+
+
+def trend(
+    name: str,
+    x: Sequence[float],
+    estimates: Sequence[float],
+    stderrs: Sequence[float],
+    tolerance: Mapping[str, float] | None = None,
+) -> Trend | None:
+    """Fit a parameter's linear trend against ``x`` (see :class:`Trend`).
+
+    ``tau^2`` by the method of moments of the meta-regression's residual Q (the
+    DerSimonian-Laird estimator with a covariate); the coefficients by weighted least
+    squares with weights ``1 / (s_i^2 + tau^2)``; their covariance scaled by the
+    Knapp-Hartung factor ``max(1, Q* / (k - 2))`` with a t interval on ``k - 2`` degrees
+    of freedom. Pairs with a missing or non-positive standard error are left out;
+    ``None`` with fewer than three usable traces or a single value of ``x``.
+    """
+    xs = np.asarray(x, dtype=float)
+    y = np.asarray(estimates, dtype=float)
+    s = np.asarray([np.nan if e is None else e for e in stderrs], dtype=float)
+    keep = np.isfinite(xs) & np.isfinite(y) & np.isfinite(s) & (s > 0)
+    xs, y, v = xs[keep], y[keep], s[keep] ** 2
+    k = int(y.size)
+    if k < 3 or np.ptp(xs) == 0:
+        return None
+    x0 = float(np.min(xs))
+    X = np.column_stack([np.ones(k), xs - x0])
+
+    def wls(w: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        cov = np.linalg.inv(X.T @ (w[:, None] * X))
+        beta = cov @ (X.T @ (w * y))
+        return beta, cov, float(np.sum(w * (y - X @ beta) ** 2))
+
+    w = 1.0 / v
+    _, cov_fixed, q = wls(w)
+    # trace(P), P = W - W X (X'WX)^-1 X'W
+    trace_p = float(np.sum(w) - np.trace(cov_fixed @ (X.T @ (w[:, None] ** 2 * X))))
+    tau2 = max(0.0, (q - (k - 2)) / trace_p) if trace_p > 0 else 0.0
+    beta, cov, q_star = wls(1.0 / (v + tau2))
+    cov = cov * max(1.0, q_star / (k - 2))
+    df = float(k - 2)
+    t = float(stats.t.ppf(0.5 + LEVEL / 2, df))
+    slope, se = float(beta[1]), math.sqrt(float(cov[1, 1]))
+    x1 = float(np.max(xs))
+    span = x1 - x0
+    start = float(beta[0])
+    drift, drift_se = slope * span, se * span
+    tol = practical_tolerance(name, start, tolerance)
+    dist = stats.t(df)
+    p = float(dist.cdf((drift - tol) / drift_se) + dist.cdf((-drift - tol) / drift_se))
+    change = ParameterChange(name, start, start + drift, drift, drift_se, drift - t * drift_se,
+                             drift + t * drift_se, tol, p)
+    return Trend(k, slope, se, slope - t * se, slope + t * se, df, x0, x1, change,
+                 math.sqrt(tau2))

@@ -5,6 +5,9 @@
 * :func:`population_table`: per parameter (and per group), the random-effects mean and
   the spread between traces (:mod:`ewb_ident.inference.population`);
 * :func:`changes_table`: per parameter, the change of every group against the first;
+* :func:`trend_table`: per parameter, its linear trend against a numeric metadata column
+  (a long log's cycles against time: fade, wear, drift);
+* :func:`split_figure`: where a long log was split into its apply cycles;
 * :func:`campaign_page`: the HTML report with a, b, c, mu against a metadata column or
   the trace order, the flagged traces and the tables above.
 """
@@ -20,7 +23,7 @@ import pandas as pd
 
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.units import shown_unit
-from ewb_ident.inference.population import group_change, random_effects
+from ewb_ident.inference.population import group_change, random_effects, trend
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS
 from ewb_ident.reporting.html import CSS
 from ewb_ident.reporting.style import png_bytes, subplots
@@ -113,7 +116,7 @@ def population_table(results: pd.DataFrame, group_by: str | None = None) -> pd.D
                 "n_traces": comb.n, "mean": comb.mean, "stderr": comb.stderr,
                 "low_90": comb.low90, "high_90": comb.high90, "tau": comb.tau,
                 "tau_low_90": comb.tau_low90, "tau_high_90": comb.tau_high90, "q": comb.q,
-                "method": "DerSimonian-Laird, Hartung-Knapp mean interval, Q-profile tau",
+                "method": "Paule-Mandel tau, Hartung-Knapp mean interval, Q-profile tau interval",
             })
     return pd.DataFrame(rows)
 
@@ -148,6 +151,133 @@ def changes_table(results: pd.DataFrame, group_by: str) -> pd.DataFrame:
         table = table.sort_values(["after", "changed", "p_changed"], ascending=[True, False,
                                                                                   False])
     return table.reset_index(drop=True)
+
+
+def trend_table(results: pd.DataFrame, against: str) -> pd.DataFrame:
+    """Per parameter (and per ``log`` when the table has several), the linear trend of the
+    traces with status ``ok`` against the numeric column ``against``
+    (:func:`ewb_ident.inference.population.trend`): the slope per unit of ``against``
+    with its 90 % interval, the drift over the column's range, in SI units and % of the
+    line's start, ``P(|drift| > tolerance)`` and whether there is a trend (that
+    probability above 0.95, as ``compare`` decides a change)."""
+    ok = _usable(results)
+    ok = ok[pd.to_numeric(ok[against], errors="coerce").notna()]
+    groups = [("all", ok)]
+    if "log" in ok and ok["log"].nunique() > 1:
+        groups += [(str(g), sub) for g, sub in ok.groupby("log", sort=True)]
+    rows = []
+    for label, sub in groups:
+        for name in _ordered(sub["parameter"]):
+            one = sub[sub["parameter"] == name]
+            tr = trend(name, one[against].to_numpy(float), one["estimate"].to_numpy(),
+                       one["stderr"].to_numpy(float))
+            if tr is None:
+                continue
+            ch = tr.change
+            rows.append({
+                "group": label, "parameter": name, "unit": PARAMS[name].unit,
+                "against": against, "n_traces": tr.n, "start": ch.old, "end": ch.new,
+                "slope": tr.slope, "slope_stderr": tr.slope_stderr,
+                "slope_low_90": tr.slope_low90, "slope_high_90": tr.slope_high90,
+                "x_first": tr.x_first, "x_last": tr.x_last, "drift": ch.delta,
+                "drift_low_90": ch.low90, "drift_high_90": ch.high90,
+                "drift_pct": 100 * ch.delta / abs(ch.old) if ch.old else None,
+                "drift_low_90_pct": 100 * ch.low90 / abs(ch.old) if ch.old else None,
+                "drift_high_90_pct": 100 * ch.high90 / abs(ch.old) if ch.old else None,
+                "tolerance": ch.tolerance, "p_trend": ch.p_changed, "trend": ch.changed,
+                "tau": tr.tau,
+                "method": "random-effects meta-regression (moments tau, Knapp-Hartung t)",
+            })
+    table = pd.DataFrame(rows)
+    if not table.empty:
+        table = table.sort_values(["group", "trend", "p_trend"], ascending=[True, False, False])
+    return table.reset_index(drop=True)
+
+
+def trend_figure(results: pd.DataFrame, against: str, trends: pd.DataFrame) -> bytes | None:
+    """a, b, c, mu per trace with their 90 % intervals against the numeric column
+    ``against``, with each parameter's trend line (all traces). ``None`` when no trace
+    has these parameters."""
+    ok = _usable(results)
+    names = [n for n in PLOTTED if n in set(ok["parameter"])]
+    if not names:
+        return None
+    fig, axes = subplots(len(names), 1, figsize=(7.5, 2.1 * len(names) + 0.6), squeeze=False,
+                         sharex=True)
+    for ax, name in zip(axes[:, 0], names, strict=True):
+        unit, k = shown_unit(PARAMS[name].unit)
+        one = ok[ok["parameter"] == name]
+        x = one[against].to_numpy(float)
+        y = one["estimate"].to_numpy() * k
+        err = np.vstack([y - one["low_90"].to_numpy() * k, one["high_90"].to_numpy() * k - y])
+        ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=2.5, color="#b22", capsize=0,
+                    elinewidth=0.6, alpha=0.7)
+        row = trends[(trends["group"] == "all") & (trends["parameter"] == name)] \
+            if not trends.empty else trends
+        if not row.empty:
+            r = row.iloc[0]
+            ax.plot([r.x_first, r.x_last], [r.start * k, r.end * k], color="#246", lw=1.5,
+                    label=f"trend {r.drift_pct:+.2f} % [{r.drift_low_90_pct:+.2f}, "
+                          f"{r.drift_high_90_pct:+.2f}] over the range")
+            ax.legend(fontsize=7, loc="best")
+        ax.set_ylabel(f"{name} ({unit})" if unit != "1" else name)
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel(against)
+    fig.suptitle("Per-cycle estimates with 90 % intervals; linear trend (random-effects "
+                 "meta-regression) with its 90 % interval", fontsize=9)
+    fig.set_layout_engine("constrained")
+    return png_bytes(fig)
+
+
+def split_figure(logs: Sequence[Any]) -> bytes:
+    """Where each log (at most four shown) was split: the split channel over the whole
+    log with each cycle fitted marked above it (blue; partial: red); each cycle's apply
+    length and the time since the previous apply over the log (a missed or merged apply
+    stands out); and the first three cycles of the first log close up with the
+    threshold. ``logs``: :class:`ewb_ident.data.cycles.LogSplit` s."""
+    shown = list(logs)[:4]
+    fig, axes = subplots(len(shown) + 2, 1, figsize=(7.5, 1.9 * (len(shown) + 2) + 0.5),
+                         squeeze=False)
+    for ax, log in zip(axes[:len(shown), 0], shown, strict=True):
+        split = log.split
+        ax.fill_between(*log.envelope, color="#999", lw=0.4, edgecolor="#999")
+        level = split.top + 0.08 * (split.top - split.floor)
+        for c in split.cycles:
+            ax.plot([c.t_start_s, c.t_end_s], [level, level], lw=3, solid_capstyle="butt",
+                    color="#e03030" if c.partial else "#2060c0")
+        ax.set_ylabel(split.channel, fontsize=8)
+        done = len(split.complete)
+        ax.set_title(f"{log.name}: {done} cycles fitted (blue bars), "
+                     f"{len(split.cycles) - done} partial (red)", fontsize=8)
+    ax = axes[len(shown), 0]
+    for log in shown:
+        rise = np.array([c.rise_s for c in log.split.cycles])
+        length = np.array([c.fall_s - c.rise_s for c in log.split.cycles])
+        ax.plot(rise, length, ".", ms=3, label=f"apply length ({log.name})" if len(shown) > 1
+                else "apply length")
+        if rise.size > 1:
+            ax.plot(rise[1:], np.diff(rise), ".", ms=3,
+                    label="time since the previous apply")
+    ax.set_ylabel("s", fontsize=8)
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title("each apply's length and the time since the previous one (a missed or "
+                 "merged apply stands out)", fontsize=8)
+    ax = axes[-1, 0]
+    log = shown[0]
+    ax.plot(*log.zoom, color="#333", lw=0.7)
+    for c in log.split.complete[:3]:
+        ax.axvspan(c.t_start_s, c.t_end_s, color="#a8c8f0", alpha=0.5, lw=0)
+        ax.axvline(c.rise_s, color="#246", lw=0.8, ls=":")
+    ax.axhline(log.split.threshold, color="#b22", lw=0.8, ls="--",
+               label=f"threshold {log.split.threshold:.4g}")
+    ax.legend(fontsize=7, loc="upper right")
+    ax.set_xlabel("time in the log (s)")
+    ax.set_ylabel(log.split.channel, fontsize=8)
+    ax.set_title(f"{log.name}: the first cycles (shaded: the window fitted; dotted: the "
+                 "rise)", fontsize=8)
+    fig.set_layout_engine("constrained")
+    return png_bytes(fig)
 
 
 def flagged(results: pd.DataFrame) -> pd.DataFrame:
@@ -217,9 +347,14 @@ def campaign_page(
     against: str | None,
     figure: str | None,
     provenance: dict[str, Any],
+    trends: pd.DataFrame | None = None,
+    cycles: pd.DataFrame | None = None,
+    split_file: str | None = None,
 ) -> str:
     """The campaign report (HTML): headline, flagged traces, the parameters against
-    ``against`` (the figure file ``figure``, beside the page), population and changes."""
+    ``against`` (the figure file ``figure``, beside the page), population and changes;
+    a long log's trends and its split into cycles (the table ``cycles``, the figure file
+    ``split_file``) when given."""
     e = html.escape
     bad = flagged(results)
     n = results["trace"].nunique()
@@ -247,16 +382,44 @@ def campaign_page(
         parts += [f"<h2>Changes by {e(changes.attrs.get('group_by', ''))}</h2>",
                   f"<p>Changed (P(|change| > tolerance) > 0.95): {e(said)}.</p>",
                   _html_table(changes)]
+    if trends is not None:
+        every = trends[trends["group"] == "all"] if not trends.empty else trends
+        against_trend = every["against"].iloc[0] if not every.empty else ""
+        moved = every[every["trend"]] if not every.empty else every
+        said = (", ".join(f"{r.parameter} {r.drift_pct:+.2f} % [{r.drift_low_90_pct:+.2f}, "
+                          f"{r.drift_high_90_pct:+.2f}] %" for r in moved.itertuples())
+                or "no parameter")
+        parts += [f"<h2>Trends against {e(against_trend)}</h2>",
+                  f"<p>Drift over the range (P(|drift| > tolerance) > 0.95): {e(said)}.</p>",
+                  "<p class='small'>slope per unit of the column; drift = slope × range, "
+                  "from the line's start; random-effects meta-regression, 90 % "
+                  "Knapp–Hartung intervals.</p>", _html_table(trends)]
+    if cycles is not None:
+        done = int((~cycles["partial"]).sum())
+        parts += ["<h2>The split into apply cycles</h2>",
+                  f"<p>{done} cycles fitted, {len(cycles) - done} partial (cut by the log's "
+                  "start or end) not fitted. An apply starts when the split channel rises "
+                  "above its floor + 10 % of its range; each cycle starts 1 s before the rise "
+                  "and lasts as long as the longest apply plus 2 s (docs/batch.md, long "
+                  "recordings). Every boundary is in cycles.csv.</p>"]
+        if split_file is not None:
+            parts.append(f"<img src='{e(split_file)}' alt='the log and its cycles'>")
+        parts.append(_html_table(cycles.head(12)))
     if figure is not None:
-        parts += ["<h2>a, b, c, μ across the campaign</h2>",
+        parts += [f"<h2>a, b, c, μ across the {'log' if cycles is not None else 'campaign'}"
+                  "</h2>",
                   f"<img src='{e(figure)}' alt='a, b, c, mu per trace'>"]
     parts += ["<h2>Population (random effects)</h2>",
-              "<p class='small'>mean: DerSimonian–Laird weights, Hartung–Knapp 90 % interval; "
+              "<p class='small'>mean: weights 1/(s² + tau²), Hartung–Knapp 90 % interval; "
               "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
               "interval. Only traces with status ok.</p>",
               _html_table(population),
               "<h2>Files</h2><p>results.csv / results.parquet (one row per trace and "
-              "parameter), population.*, changes.*, batch.json (settings, inputs with hashes, "
+              "parameter), population.*"
+              + (", changes.*" if changes is not None else "")
+              + (", trend.*" if trends is not None else "")
+              + (", cycles.* and cycles/ (the cycles as traces)" if cycles is not None else "")
+              + ", batch.json (settings, inputs with hashes, "
               f"where it ran, versions).</p><p class='small'>{e(provenance['command'])}</p>",
               "</body></html>"]
     return "\n".join(parts)
