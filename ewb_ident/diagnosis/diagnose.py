@@ -570,25 +570,12 @@ def _second_opinion(ses: Session, work: _Work) -> None:
         own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
         explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
         learned = min(disc.learned.share, 1.0)
+        if learned <= explained + CATALOG_MARGIN:
+            continue
         why = (
             f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
             f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
         )
-        if learned <= explained + CATALOG_MARGIN:
-            # The catalog explains as much; but if a learned term is still needed on top
-            # of it and the learned term alone does about as well as both together, the
-            # catalog name adds nothing the data ask for (one explanation, not two).
-            top = discover(ses, stage, _fits_of(ses, work.selected))
-            if top is None or not top.learned.generalises:
-                continue
-            both = explained + (1.0 - explained) * min(top.learned.share, 1.0)
-            if learned < both - CATALOG_MARGIN:
-                continue
-            why = (
-                f"a learned term at {disc.place} alone removes {100 * learned:.0f} % of the "
-                f"excess on held-out data, about as much as {', '.join(m.variant for m in at)} "
-                f"with a learned term on top ({100 * both:.0f} %)"
-            )
         for mech in at:
             work.selected.remove(mech)
             ev = work.evidence.pop(mech.variant)
