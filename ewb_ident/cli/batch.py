@@ -251,17 +251,15 @@ def _run(campaign, jobs, out: Path, client, group_by, source: str, settings,
 
 def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, Any]:
     import platform
-    from importlib.metadata import PackageNotFoundError, version
 
     import ewb_ident
     from ewb_ident.inference.batch import record_path
+    from ewb_ident.reporting.provenance import package_versions
 
     versions = {"ewb_ident": ewb_ident.__version__, "python": platform.python_version()}
-    for dist in ("jax", "numpy", "scipy", "pandas", "pyarrow", "dask", "distributed"):
-        try:
-            versions[dist] = version(dist)
-        except PackageNotFoundError:
-            versions[dist] = None
+    versions |= package_versions(
+        ("jax", "numpy", "scipy", "pandas", "pyarrow", "dask", "distributed")
+    )
     inputs = []
     for e, job, rec in zip(campaign.entries, jobs, records, strict=True):
         inputs.append({

@@ -17,6 +17,19 @@ if TYPE_CHECKING:
 PROVENANCE_PACKAGES = ("jax", "numpy", "scipy", "equinox", "optimistix", "emcee", "arviz")
 
 
+def package_versions(names: Sequence[str]) -> dict[str, str | None]:
+    """The installed version of each distribution in ``names`` (``None``: not installed)."""
+    from importlib import metadata
+
+    out: dict[str, str | None] = {}
+    for name in names:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
 def _checkout_commit() -> str:
     """The commit of the checkout the package runs from, or ``""`` (an installed copy)."""
     import subprocess
@@ -41,22 +54,14 @@ def provenance_rows(
     and, per trace, file, SHA-256, r_eff and its source, and the column mapping with its
     unit conversions."""
     import datetime
-    from importlib import metadata
-
-    def version(name: str) -> str:
-        try:
-            return metadata.version(name)
-        except metadata.PackageNotFoundError:
-            return "not installed"
 
     commit = _checkout_commit()
+    found = package_versions(("ewb-ident", *PROVENANCE_PACKAGES))
+    shown = {p: v or "not installed" for p, v in found.items()}
     rows = [
-        ["tool", esc(f"ewb-ident {version('ewb-ident')}")],
+        ["tool", esc(f"ewb-ident {shown.pop('ewb-ident')}")],
         *([["commit", f"<code>{esc(commit)}</code>"]] if commit else []),
-        [
-            "packages",
-            esc(", ".join(f"{p} {version(p)}" for p in PROVENANCE_PACKAGES)),
-        ],
+        ["packages", esc(", ".join(f"{p} {v}" for p, v in shown.items()))],
         ["date (UTC)", esc(datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"))],
     ]
     if command:
