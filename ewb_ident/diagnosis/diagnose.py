@@ -36,10 +36,12 @@ Steps (:func:`diagnose`)
    remaining candidates are refitted on top of it, and so on while a stage is still
    located (at most :data:`MAX_MECHANISMS`).
 4. **Unknown physics.** Catalog names at a stage are first checked against a learned
-   term there on held-out data; a stage still located afterwards goes to discovery
-   (:mod:`ewb_ident.diagnosis.discovery`): a learned term where it acts, kept only if it
-   generalises, distilled to an equation, reported as ``learned_<place>``. With no
-   catalog finding the verdict is ``unexplained``.
+   term there on held-out data (:mod:`ewb_ident.diagnosis.arbitration`); a stage still
+   located afterwards goes to discovery (:mod:`ewb_ident.diagnosis.discovery`): a
+   learned term where it acts, kept only if it generalises, distilled to an equation,
+   reported as ``learned_<place>``. A catalog name still needing a learned term on top
+   must beat a learned term alone by the evidence threshold. With no catalog finding
+   the verdict is ``unexplained``.
 5. **Show it.** The whole chain is refitted with the selected mechanisms, one added at a
    time, for metrics before and after each; words for each finding.
 
@@ -61,6 +63,7 @@ from ewb_ident.data.metrics import channel_metrics
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.validation import check_trace
+from ewb_ident.diagnosis.arbitration import fits_of, one_explanation, second_opinion
 from ewb_ident.diagnosis.artefacts import find_artefacts
 from ewb_ident.diagnosis.corrected import (
     corrected_of,
@@ -69,7 +72,7 @@ from ewb_ident.diagnosis.corrected import (
     spread_notes,
     with_spread,
 )
-from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, Discovery, discover
+from ewb_ident.diagnosis.discovery import Discovery, discover
 from ewb_ident.diagnosis.findings import (
     closure,
     fit_learned,
@@ -196,10 +199,11 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
     work = _explain(ses, pool, {m.stage for m in flagged}, bic_threshold, max_mechanisms, say)
     lap("explain")
     say("checking each catalog name against a learned term at its stage")
-    _second_opinion(ses, work)
+    second_opinion(ses, work)
     lap("second_opinion")
     say("looking for physics outside the catalog")
     _unknown(ses, work, bool(flagged), bic_threshold)
+    one_explanation(ses, work, bic_threshold)
     lap("unknown")
     say("confirming the findings on the whole chain")
     added, chain_ev, unconfirmed = _confirm(ses, chain, work, bic_threshold)
@@ -540,56 +544,6 @@ def _form_spread(work: _Work, added) -> dict[str, float]:
     return merged_spread(d.spread for d, _, _, term in work.discoveries if term.variant in kept)
 
 
-def _fits_of(ses: Session, selected):
-    """The current fit of a set of stages, with the selected mechanisms acting there."""
-
-    def fits_of(stages):
-        T = closure(stages, selected, ses)
-        ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
-        return ses.fit(T, ms, explore=[False] * len(ms))
-
-    return fits_of
-
-
-def _second_opinion(ses: Session, work: _Work) -> None:
-    """Never a confident wrong name: the catalog mechanisms selected at a stage stay only
-    if together they remove at least as much of the excess there as the best learned
-    term does on held-out data (less :data:`CATALOG_MARGIN`). Otherwise they are
-    dropped, the stage goes to discovery, and the catalog names become the learned
-    term's rivals."""
-    for stage in dict.fromkeys(m.stage for m in work.selected):
-        at = [m for m in work.selected if m.stage == stage]
-        others = [m for m in work.selected if m.stage != stage]
-        disc = discover(ses, stage, _fits_of(ses, others))
-        if disc is None or not disc.learned.generalises:
-            continue
-        T = closure((stage,), work.selected, ses)
-        without = _fits_of(ses, others)(T)
-        ms = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(T)]
-        with_all = ses.fit(T, ms, explore=[False] * len(ms))
-        own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
-        explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
-        learned = min(disc.learned.share, 1.0)
-        if learned <= explained + CATALOG_MARGIN:
-            continue
-        why = (
-            f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
-            f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
-        )
-        for mech in at:
-            work.selected.remove(mech)
-            ev = work.evidence.pop(mech.variant)
-            k = next(
-                i for i, c in enumerate(work.candidates) if c.selected and c.variant == mech.variant
-            )
-            cand = work.candidates[k]
-            work.candidates[k] = Candidate(**{**cand.__dict__, "selected": False, "rejected": why})
-            work.rivals.setdefault(stage, []).append((mech.id, float(ev["delta_bic"])))
-            work.notes.append(f"{mech.variant}: not reported: {why}")
-        for st in T:
-            work.current[st] = _fits_of(ses, work.selected)((st,))
-
-
 def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float) -> None:
     """Step 4: discovery (:mod:`ewb_ident.diagnosis.discovery`) at each stage still
     located, unless a held back catalog rival removes as much as the discovered term
@@ -605,7 +559,7 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
     for s in remaining[:MAX_CORRECTIONS]:
         if s in done:
             continue
-        disc = discover(ses, s, _fits_of(ses, work.selected))
+        disc = discover(ses, s, fits_of(ses, work.selected))
         if disc is None:
             continue
         if not disc.learned.groups or not disc.distilled.generalises:

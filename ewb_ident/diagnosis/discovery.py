@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import fftconvolve
 
-from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
+from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, CHANNELS, STAGE_OUTPUTS
 from ewb_ident.data.trace import InputError
 from ewb_ident.diagnosis.heldout import (
     HELDOUT_BIC,
@@ -80,6 +80,7 @@ from ewb_ident.diagnosis.inputs import (
 )
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import motor_fine, zoh_exact
+from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 #: ... a learned term must also remove at least this share of the held-out excess over
@@ -312,6 +313,9 @@ class Discovery:
     #: Per base parameter (SI): how far its estimate moves between the terms the trace
     #: cannot tell apart (:func:`form_spread`).
     spread: dict[str, float] = field(default_factory=dict)
+    #: The stage's free parameters (SI) after the linearised step with the term: a start
+    #: for its fit through the model beside the current values.
+    start: dict[str, float] = field(default_factory=dict)
 
     @property
     def columns(self) -> list[Column]:
@@ -693,19 +697,8 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         results.insert(0, min(close, key=lambda x: _specificity(x[0].place)))
     pf, d, groups, sig, stages, model = results[0]
     if not pf.groups:
-        return Discovery(
-            stage,
-            pf.place,
-            stages,
-            pf,
-            pf,
-            (),
-            (),
-            method,
-            tuple(r[0] for r in results),
-            sig,
-            model,
-        )
+        places = tuple(r[0] for r in results)
+        return Discovery(stage, pf.place, stages, pf, pf, (), (), method, places, sig, model)
 
     def distilled(pf, sig, stages):
         items = library(sig, pf.groups)
@@ -740,6 +733,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         sig,
         model,
         spread,
+        linearised_start(fit, step),
     )
 
 
@@ -752,14 +746,22 @@ def estimates(fit, step: np.ndarray, free_only: bool = True) -> dict[str, float]
     """The fit's free base parameters (SI) after the linearised step ``step`` (in the
     fit's optimiser coordinates, its free parameters first); with ``free_only`` False,
     its held ones too, at their values."""
-    from ewb_ident.model.params import PARAMS
-
     out = {} if free_only else {k: float(v) for k, v in fit.values.items() if k in PARAMS}
     for j, name in enumerate(fit.problem.free):
         if name in PARAMS and j < step.size:
             dp = float(PARAMS[name].dp_du(float(fit.u[j]))) * float(step[j])
             out[name] = float(fit.values[name]) + dp
     return out
+
+
+def linearised_start(fit, step: np.ndarray) -> dict[str, float]:
+    """A start for a term's fit through the model: :func:`estimates`, but a parameter the
+    step takes out of its range (it has no slope there, so the linearisation says
+    nothing about it: an armature's L pinned near zero) at its nominal value."""
+    nominal, out = EWBParams().as_dict(), estimates(fit, step)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bad = [n for n, v in out.items() if not np.isfinite(PARAMS[n].to_unconstrained(v))]
+    return out | {n: nominal.get(n, float(fit.values[n])) for n in bad}
 
 
 def form_spread(best: Mapping[str, float], others: Sequence[Mapping[str, float]]):
@@ -890,9 +892,7 @@ class LearnedSpec:
         TermError
             The trace lacks an input the term depends on (e.g. the disc speed).
         """
-        from ewb_ident.data.stages import CHANNELS
         from ewb_ident.model.integrate import simulate_chain
-        from ewb_ident.model.params import MODEL_PARAMS, EWBParams
 
         p = EWBParams(**{k: float(values[k]) for k in MODEL_PARAMS})
         sim = simulate_chain(

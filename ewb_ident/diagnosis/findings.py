@@ -183,7 +183,11 @@ def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
         (*f_cur.mechanisms, term),
         ses.channels_of(T),
         start={n: f_cur.values[n] for n in ses.free_of(T)},
-        explore=[False] * (len(ms) + 1),
+        # The term from its distilled coefficients and from zero; the stage's parameters
+        # also from where the linearised step with the term put them, and the nominal
+        # motor's.
+        explore=[False] * len(ms) + [True],
+        alt_starts=([disc.start] if disc.start else []) + ses.nominal_starts(T),
     )
     ev = bic_evidence(f_new, f_cur, ses.sigma_tf)
     if ev["delta_bic"] > -threshold:

@@ -283,17 +283,19 @@ class Session:
 
         return made_once(self._lock, self._pending, key, self.cache.get, make)[0]
 
+    def nominal_starts(self, stages: Sequence[str]) -> list[dict[str, float]]:
+        """Other starts for a fit with physics added at ``stages``: a baseline motor
+        fitted without the missing physics has compensated for it (and a closed-loop
+        trace lets such errors grow without bound), so also the nominal motor."""
+        if "motor" not in stages:
+            return []
+        nominal = EWBParams().as_dict() | {"theta0_deg": self.theta0_measured}
+        keep = (*MOTOR_PARAMS, "theta0_deg")
+        return [{n: nominal[n] for n in self.free_of(stages) if n in nominal and n in keep}]
+
     def _fit(self, stages, mechs, explore) -> AugFit:
         free = self.free_of(stages)
-        alt = []
-        if mechs and "motor" in stages:
-            # A baseline motor fitted without the missing physics has compensated for
-            # it (and a closed-loop trace lets such errors grow without bound): also
-            # start from the nominal motor.
-            nominal = EWBParams().as_dict() | {"theta0_deg": self.theta0_measured}
-            alt.append(
-                {n: nominal[n] for n in free if n in nominal and n in (*MOTOR_PARAMS, "theta0_deg")}
-            )
+        alt = self.nominal_starts(stages) if mechs else []
         return fit_mechanisms(
             self.data,
             stages,

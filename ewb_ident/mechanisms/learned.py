@@ -162,7 +162,8 @@ class LearnedTerm(AbstractMechanism):
         return (("place", self.place), ("names", self.names), ("scales", self.scales))
 
     def starts(self, ctx) -> list[dict[str, float]]:
-        return []
+        # No term: a fit from there cannot end worse than the model without it.
+        return [{f"c{j}": 0.0 for j in range(len(self.names))}]
 
     def implausible_reason(self, values, stderr) -> str:
         return ""

@@ -1,0 +1,113 @@
+"""Catalog names against learned terms at one stage: never a confident wrong name.
+
+A catalog mechanism names physics with parameters a researcher knows; a learned term
+(:mod:`ewb_ident.diagnosis.discovery`) represents whatever acts at a place. Where both
+explain a stage, the catalog name is kept only when the data ask for it:
+
+* :func:`second_opinion`: the catalog mechanisms selected at a stage must remove at
+  least as much of the excess residual there as the best learned term does on held-out
+  data (less :data:`~ewb_ident.diagnosis.discovery.CATALOG_MARGIN`);
+* :func:`one_explanation`: when a learned term is still needed on top of a catalog
+  mechanism at its stage, the mechanism must also earn its place on top of a learned
+  term fitted without it: the stage's fit with both must beat the learned term alone by
+  the evidence threshold (``dBIC <= -threshold``, the rule every finding passes).
+  Otherwise one explanation (the learned term) does what two claim to.
+
+Both compare fits of the same stages and weights; a dropped catalog name becomes a rival
+the finding lists.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from ewb_ident.data.stages import STAGE_OUTPUTS
+from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, discover
+from ewb_ident.diagnosis.findings import closure, fit_learned
+from ewb_ident.diagnosis.result import Candidate
+from ewb_ident.diagnosis.session import Session, bic_evidence
+
+
+def fits_of(ses: Session, selected):
+    """The current fit of a set of stages, with the selected mechanisms acting there."""
+
+    def fit(stages):
+        T = closure(stages, selected, ses)
+        ms = [m for m in selected if set(ses.mechanism_stages(m)) & set(T)]
+        return ses.fit(T, ms, explore=[False] * len(ms))
+
+    return fit
+
+
+def _drop(work: Any, ses: Session, stage: str, at: Sequence[Any], why: str) -> None:
+    """Unselect the catalog mechanisms ``at`` (their candidates say why) and make them
+    the rivals of a learned term at ``stage``."""
+    for mech in at:
+        work.selected.remove(mech)
+        ev = work.evidence.pop(mech.variant)
+        k = next(
+            i for i, c in enumerate(work.candidates) if c.selected and c.variant == mech.variant
+        )
+        cand = work.candidates[k]
+        work.candidates[k] = Candidate(**{**cand.__dict__, "selected": False, "rejected": why})
+        work.rivals.setdefault(stage, []).append((mech.id, float(ev["delta_bic"])))
+        work.notes.append(f"{mech.variant}: not reported: {why}")
+
+
+def second_opinion(ses: Session, work: Any) -> None:
+    """The catalog mechanisms selected at a stage stay only if together they remove at
+    least as much of the excess there as the best learned term does on held-out data
+    (less :data:`CATALOG_MARGIN`). Otherwise they are dropped, the stage goes to
+    discovery, and the catalog names become the learned term's rivals."""
+    for stage in dict.fromkeys(m.stage for m in work.selected):
+        at = [m for m in work.selected if m.stage == stage]
+        others = [m for m in work.selected if m.stage != stage]
+        disc = discover(ses, stage, fits_of(ses, others))
+        if disc is None or not disc.learned.generalises:
+            continue
+        T = closure((stage,), work.selected, ses)
+        without = fits_of(ses, others)(T)
+        ms = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(T)]
+        with_all = ses.fit(T, ms, explore=[False] * len(ms))
+        own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
+        explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
+        learned = min(disc.learned.share, 1.0)
+        if learned <= explained + CATALOG_MARGIN:
+            continue
+        why = (
+            f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
+            f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
+        )
+        _drop(work, ses, stage, at, why)
+        for st in T:
+            work.current[st] = fits_of(ses, work.selected)((st,))
+
+
+def one_explanation(ses: Session, work: Any, threshold: float) -> None:
+    """A catalog mechanism under a learned term at its stages must beat, together with
+    that term, a learned term fitted without it by ``threshold`` in BIC; otherwise it is
+    dropped and the learned term fitted without it takes the discovery's place."""
+    for k, (disc, f_both, _, _) in enumerate(list(work.discoveries)):
+        at = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(f_both.stages)]
+        if not at:
+            continue
+        others = [m for m in work.selected if m not in at]
+        alone = discover(ses, disc.stage, fits_of(ses, others))
+        if alone is None or not alone.learned.groups or not alone.distilled.generalises:
+            continue
+        res = fit_learned(ses, alone, others, threshold)
+        if res is None or res[0].stages != f_both.stages:
+            continue
+        gain = bic_evidence(f_both, res[0], ses.sigma_tf)["delta_bic"]
+        if gain <= -threshold:
+            continue
+        why = (
+            f"a learned term at {alone.place} alone fits its stages as well as "
+            f"{', '.join(m.variant for m in at)} with a learned term on top "
+            f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
+        )
+        _drop(work, ses, disc.stage, at, why)
+        work.discoveries[k] = (alone, *res)
+        for st in res[0].stages:
+            work.current[st] = res[0]
