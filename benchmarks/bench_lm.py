@@ -19,8 +19,9 @@ The sides.
     stage, free set and weights are data), its stopping rule "optimum within 1e-4
     standard errors".
 ``normal equations``
-    The mechanism fits' hand-written loop on the same compiled program (normal
-    equations, relative-decrease rule; warm only, its program is the same).
+    The same loop with the mechanism fits' descent and stopping rule (normal
+    equations, relative decrease of the cost) on the same compiled program (warm
+    only, its program is the same).
 ``optimistix, problem static``
     ``optx.least_squares(problem, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12))``
     on the fit's residual function (``StageProblem``, the stage and free set fixed in
@@ -124,7 +125,11 @@ def compare(problem, u0, data, tol, max_steps):
     """Each side's (solution u, steps, cold s, warm s) on one problem."""
     import optimistix as optx
 
-    from ewb_ident.inference.solvers import levenberg_marquardt
+    from ewb_ident.inference.solvers import (
+        NormalEquationsDescent,
+        RelativeDecrease,
+        levenberg_marquardt,
+    )
 
     def fun_and_jac(u):
         r, _, J = evaluate(problem, u, data, predictions=False)
@@ -134,7 +139,9 @@ def compare(problem, u0, data, tol, max_steps):
     programs.release()
     sol, cold, warm = timed(lambda: least_squares._solve(problem, u0, data, tol, max_steps))
     out["hand-written"] = (np.asarray(sol.u), sol.steps, cold, warm, sol.converged)
-    sol, _, warm = timed(lambda: levenberg_marquardt(None, fun_and_jac, u0, max_steps=max_steps))
+    normal = {"descent": NormalEquationsDescent(), "stop": RelativeDecrease()}
+    normal["max_steps"] = max_steps
+    sol, _, warm = timed(lambda: levenberg_marquardt(fun_and_jac, u0, **normal))
     out["normal equations"] = (np.asarray(sol.u), sol.steps, None, warm, sol.converged)
 
     solver = optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL)
