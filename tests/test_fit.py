@@ -335,6 +335,19 @@ def test_the_solver_reaches_the_optimum_optimistix_reaches(staircase):
         assert abs(result.u[j] - u_ref[j]) * slope < 0.01 * se, name
 
 
+def test_one_levenberg_marquardt_serves_every_fit():
+    """One loop, named after its algorithm, solves the stage and chain fits and the fits
+    with mechanisms (each with its own descent and stopping rule); the loop named after
+    its caller is gone."""
+    from ewb_ident.inference import augmented, least_squares, solvers
+
+    assert least_squares.levenberg_marquardt is solvers.levenberg_marquardt
+    assert augmented.levenberg_marquardt is solvers.levenberg_marquardt
+    assert not hasattr(solvers, "seed_levenberg_marquardt")
+    for path in Path(solvers.__file__).parents[1].rglob("*.py"):
+        assert "seed_levenberg_marquardt" not in path.read_text(encoding="utf-8"), path
+
+
 @pytest.mark.parametrize("stage", ["motor", "gap", "force", "torque", "chain"])
 def test_one_program_predicts_each_stage_as_the_chain_evaluator_does(staircase, stage):
     """The fits' single compiled program picks each stage's input by data; its

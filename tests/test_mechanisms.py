@@ -419,9 +419,9 @@ def test_alternative_starts_run_only_while_no_fit_is_at_the_noise(monkeypatch):
     starts = []
     solve = augmented.levenberg_marquardt
 
-    def counted(fun, fun_and_jac, u0, **kw):
+    def counted(fun_and_jac, u0, **kw):
         starts.append(np.array(u0))
-        return solve(fun, fun_and_jac, u0, **kw)
+        return solve(fun_and_jac, u0, **kw)
 
     monkeypatch.setattr(augmented, "levenberg_marquardt", counted)
     trace, _ = rig.simulate_rig(sample_rate_hz=200.0, effects=[rig.Backlash(beta_deg=3.3)])
@@ -472,8 +472,6 @@ def test_levenberg_marquardt_is_not_stalled_by_heavy_weights():
     # largest diagonal damped the first step to nothing and ended the solve, "converged",
     # at its start (a chain fit adding hysteresis to stiction stopped at 257k, 38 % above
     # the fit without hysteresis, where it reaches 31k).
-    from ewb_ident.inference.solvers import levenberg_marquardt
-
     rng = np.random.default_rng(3)
     X = rng.standard_normal((300, 3))
     y = X @ np.array([1.0, -2.0, 0.5]) + 0.01 * rng.standard_normal(300)
@@ -482,9 +480,26 @@ def test_levenberg_marquardt_is_not_stalled_by_heavy_weights():
     def fun(u):
         return w * (X @ np.asarray(u) - y)
 
-    sol = levenberg_marquardt(fun, lambda u: (fun(u), w * X, None), np.zeros(3))
+    sol = _normal_lm(lambda u: (fun(u), w * X, None), np.zeros(3))
     assert sol.converged
     np.testing.assert_allclose(sol.u, np.linalg.lstsq(X, y, rcond=None)[0], rtol=1e-6)
+
+
+def _normal_lm(fun_and_jac, u0, stall=None, max_steps=200):
+    """The mechanism fits' Levenberg-Marquardt: normal equations, relative decrease."""
+    from ewb_ident.inference.solvers import (
+        NormalEquationsDescent,
+        RelativeDecrease,
+        levenberg_marquardt,
+    )
+
+    return levenberg_marquardt(
+        fun_and_jac,
+        u0,
+        descent=NormalEquationsDescent(),
+        stop=RelativeDecrease(stall=stall),
+        max_steps=max_steps,
+    )
 
 
 def _valley(e: float):
@@ -503,21 +518,17 @@ def test_levenberg_marquardt_ends_a_slide_worth_under_one_noise_unit(e):
     """Along a weakly determined valley each step gains little; with ``stall`` the solver
     stops once ten steps gained under ``stall`` and the optimum is within one standard
     error (cost within 1 of the optimum's 0), instead of sliding for hundreds of steps."""
-    from ewb_ident.inference.solvers import levenberg_marquardt
-
     u0 = np.array([-1.2, 1.0])
-    slide = levenberg_marquardt(None, _valley(e), u0, max_steps=500)
+    slide = _normal_lm(_valley(e), u0, max_steps=500)
     assert slide.converged and slide.steps > 100 and slide.cost < 1e-20
-    stop = levenberg_marquardt(None, _valley(e), u0, max_steps=500, stall=0.1)
+    stop = _normal_lm(_valley(e), u0, max_steps=500, stall=0.1)
     assert stop.converged and stop.steps < 20 and 0.0 < stop.cost < 1.0
     assert abs(stop.u[0] - 1.0) < 2.0 / e  # where along the valley: within its error
 
 
 @pytest.mark.parametrize("e", [10.0, 30.0])
 def test_levenberg_marquardt_with_stall_still_reaches_a_determined_optimum(e):
-    from ewb_ident.inference.solvers import levenberg_marquardt
-
-    sol = levenberg_marquardt(None, _valley(e), np.array([-1.2, 1.0]), stall=0.1)
+    sol = _normal_lm(_valley(e), np.array([-1.2, 1.0]), stall=0.1)
     assert sol.converged
     np.testing.assert_allclose(sol.u, [1.0, 1.0], atol=1e-9)
 
@@ -527,8 +538,6 @@ def test_levenberg_marquardt_refuses_a_step_where_jtj_overflows():
     # after a step that lowered the cost; a diagnosis of a 2 s closed-loop trace with a
     # wedge reaction took such a step), then a damped system of infinities. The step is
     # refused like one to where the model has no slope.
-    from ewb_ident.inference.solvers import levenberg_marquardt
-
     def fun(u):
         return np.asarray(u) - 3.0
 
@@ -536,7 +545,7 @@ def test_levenberg_marquardt_refuses_a_step_where_jtj_overflows():
         steep = 1e200 if float(u[0]) >= 2.5 else 1.0
         return fun(u), np.array([[steep]]), None
 
-    sol = levenberg_marquardt(fun, fun_and_jac, np.zeros(1))
+    sol = _normal_lm(fun_and_jac, np.zeros(1))
     assert np.all(np.isfinite(sol.u)) and float(sol.u[0]) < 2.5
     assert np.isfinite(sol.cost) and sol.cost < 9.0  # moved toward 3 without crossing
 
@@ -546,7 +555,11 @@ def _no_current_session(effect, seed: int, profile: str = "position", rate: floa
 
     noise = rig.SensorNoise()
     trace, _ = rig.simulate_rig(
-        profile=profile, sample_rate_hz=rate, duration_s=3.0, effects=[effect], seed=seed,
+        profile=profile,
+        sample_rate_hz=rate,
+        duration_s=3.0,
+        effects=[effect],
+        seed=seed,
         noise=noise,
     )
     trace = dataclasses.replace(

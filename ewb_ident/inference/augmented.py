@@ -5,9 +5,9 @@ caller (the sensor noise floor, with the input noise a teacher-forced stage prop
 so that fits of the same stages with and without a mechanism have comparable costs.
 Parameters are optimised in unconstrained O(1) coordinates: the base parameters as
 declared in :data:`ewb_ident.model.params.PARAMS`, each mechanism's as it declares them.
-The solver is Levenberg-Marquardt (:func:`ewb_ident.inference.solvers.levenberg_marquardt`)
-from the best of a few
-starting points.
+The solver is Levenberg-Marquardt (:func:`ewb_ident.inference.solvers.levenberg_marquardt`,
+the step from the normal equations, converged on the relative decrease of the cost) from
+the best of a few starting points.
 
 Arrays are padded to a multiple of :data:`ewb_ident.runtime.programs.PAD` samples (padding
 weighted zero) so that traces of similar length share compiled code.
@@ -28,7 +28,13 @@ import numpy as np
 from ewb_ident.data.stages import CHANNELS, STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.problem import FORCED_CHANNEL, PROGRAM_COLUMNS, Z_NAMES, fit_program
-from ewb_ident.inference.solvers import Solution, Status, levenberg_marquardt
+from ewb_ident.inference.solvers import (
+    NormalEquationsDescent,
+    RelativeDecrease,
+    Solution,
+    Status,
+    levenberg_marquardt,
+)
 from ewb_ident.inference.uncertainty import parameter_uncertainty
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
@@ -40,7 +46,7 @@ from ewb_ident.runtime.threads import parallel_map
 MAX_STARTS = 24
 #: A fit has converged when its last steps lowered the cost (a chi-square: residuals in
 #: units of their noise) by less than this together, with the optimum of its linearised
-#: model within one standard error (:func:`ewb_ident.inference.solvers.levenberg_marquardt`).
+#: model within one standard error (:class:`ewb_ident.inference.solvers.RelativeDecrease`).
 STALL = 0.1
 #: Columns a fit may read: the program's (the voltage and the channels of
 #: :data:`ewb_ident.data.stages.CHANNELS`) and the disc speed that speed-dependent
@@ -426,7 +432,13 @@ def fit_mechanisms(
         def fun_and_jac(u):
             return made.pop() if made else residuals_and_jacobian(problem, u, data)
 
-        return levenberg_marquardt(None, fun_and_jac, us[i], max_steps=max_steps, stall=STALL)
+        return levenberg_marquardt(
+            fun_and_jac,
+            us[i],
+            descent=NormalEquationsDescent(),
+            stop=RelativeDecrease(stall=STALL),
+            max_steps=max_steps,
+        )
 
     def at_noise() -> bool:
         return best is not None and best.converged and best.cost <= n_res

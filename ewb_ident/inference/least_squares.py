@@ -52,7 +52,14 @@ from ewb_ident.inference.problem import (
     stage_inputs,
     usable,
 )
-from ewb_ident.inference.solvers import NULL_LIMIT, Solution, Status, seed_levenberg_marquardt
+from ewb_ident.inference.solvers import (
+    NULL_LIMIT,
+    NearOptimum,
+    Solution,
+    Status,
+    SVDDescent,
+    levenberg_marquardt,
+)
 from ewb_ident.inference.uncertainty import (
     identifiability_notes,
     parameter_uncertainty,
@@ -256,7 +263,7 @@ def fit(
         Convergence: the optimum lies within ``sqrt(tol)`` standard errors of the
         solution, in the metric of the weighted Jacobian (the Gauss-Newton step's
         predicted decrease of the weighted cost is below ``tol`` times the residual
-        variance; see :func:`~ewb_ident.inference.solvers.seed_levenberg_marquardt`).
+        variance; see :class:`~ewb_ident.inference.solvers.NearOptimum`).
 
     Returns
     -------
@@ -349,21 +356,25 @@ def _solve_twice(setup, u0, data, sigma, tol, max_steps):
 
 
 def _solve(problem, u0, data, tol: float, max_steps: int) -> Solution:
-    """Levenberg-Marquardt on the compiled residuals and Jacobian of :func:`evaluate`:
-    identity damping in ``u``, and if that reaches the step limit, Marquardt's damping
-    from the same start (each crawls where the other does not; see
-    :func:`~ewb_ident.inference.solvers.seed_levenberg_marquardt`). The converged one,
-    else the lower cost."""
+    """Levenberg-Marquardt on the compiled residuals and Jacobian of :func:`evaluate`,
+    the step from their SVD, converged within ``sqrt(tol)`` standard errors of the
+    optimum: identity damping in ``u``, and if that reaches the step limit, Marquardt's
+    damping from the same start (each crawls where the other does not; see
+    :class:`~ewb_ident.inference.solvers.SVDDescent`). The converged one, else the lower
+    cost."""
 
     def fun_and_jac(u):
         r, _, J = evaluate(problem, u, data, predictions=False)
         return r, J
 
     u0 = np.asarray(u0)
-    sol = seed_levenberg_marquardt(fun_and_jac, u0, max_steps=max_steps, gn_tol=tol)
+    stop = NearOptimum(tol)
+    sol = levenberg_marquardt(fun_and_jac, u0, descent=SVDDescent(), stop=stop, max_steps=max_steps)
     if sol.status is not Status.MAX_STEPS:
         return sol
-    alt = seed_levenberg_marquardt(fun_and_jac, u0, max_steps=max_steps, gn_tol=tol, marquardt=True)
+    alt = levenberg_marquardt(
+        fun_and_jac, u0, descent=SVDDescent(marquardt=True), stop=stop, max_steps=max_steps
+    )
     steps = sol.steps + alt.steps
     if alt.converged or (alt.cost is not None and alt.cost < sol.cost):
         return dataclasses.replace(alt, steps=steps)
