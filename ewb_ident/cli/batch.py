@@ -309,7 +309,7 @@ def _run(campaign, jobs, out: Path, client, group_by, source: str, settings,
                                                        "diagnose_seconds"))
             how = "reused" if reused else f"{spent:.1f} s"
             said = f": {record['message']}" if record["status"] == "error" else ""
-            found = (f", {record['verdict']} {', '.join(record['findings'])}".rstrip()
+            found = (f", diagnosis {record['verdict']} {', '.join(record['findings'])}".rstrip()
                      if record.get("verdict") is not None else "")
             say(f"{done}/{total} {record['trace']}: {record['status']}{found} ({how}){said}")
 
@@ -463,10 +463,12 @@ def _echo_tables(population, changes, trends=None) -> None:
     if not pop.empty:
         typer.echo("population (random effects; 90 % intervals; a, c, p-coefficients in mm/µm/nm):")
         for r in pop.itertuples():
+            spread = (f"tau {shown(r.unit, r.tau)}  (n = {r.n_traces})" if r.n_units is None
+                      or r.n_units != r.n_units else
+                      f"tau_unit {shown(r.unit, r.tau_unit)}, tau_trace "
+                      f"{shown(r.unit, r.tau_trace)}  (n = {r.n_traces} in {int(r.n_units)} units)")
             typer.echo(f"  {r.parameter:<5} mean {shown(r.unit, r.mean)} "
-                       f"[{shown(r.unit, r.low_90)}, "
-                       f"{shown(r.unit, r.high_90)}]  tau "
-                       f"{shown(r.unit, r.tau)}  (n = {r.n_traces})")
+                       f"[{shown(r.unit, r.low_90)}, {shown(r.unit, r.high_90)}]  {spread}")
     if changes is not None and not changes.empty:
         moved = changes[changes["changed"]]
         typer.echo("changed: " + (", ".join(

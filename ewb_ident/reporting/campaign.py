@@ -178,7 +178,10 @@ def population_table(results: pd.DataFrame, group_by: str | None = None,
                 "tau_trace_high_90": None if two is None else two.tau_trace_high90,
                 "method": ONE_LEVEL if two is None else TWO_LEVEL,
             })
-    return pd.DataFrame(rows)
+    table = pd.DataFrame(rows)
+    for col in ("n_units", *(c for c in table.columns if c.startswith("tau"))):
+        table[col] = pd.to_numeric(table[col]).astype("float64")  # empty: NaN, not None
+    return table
 
 
 def changes_table(results: pd.DataFrame, group_by: str, units: str | None = None
@@ -411,7 +414,9 @@ def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None
                     ax.plot([j - 0.25, j + 0.25], [comb.mean * k] * 2, color="#246", lw=1.5)
         y = one["estimate"].to_numpy() * k
         err = np.vstack([y - one["low_90"].to_numpy() * k, one["high_90"].to_numpy() * k - y])
-        ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, color="#b22", capsize=2)
+        ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, color="#b22", capsize=2,
+                    label="fit")
+        _corrected_points(ax, results, name, dict(zip(one["trace"], x, strict=True)), k)
         ax.set_ylabel(f"{name} ({unit})" if unit != "1" else name)
         if against is not None:
             ax.set_xticks(range(len(cats)), [str(c) for c in cats])
@@ -429,6 +434,21 @@ def _extras(provenance: dict[str, Any]) -> str:
     said = [w for w, on in (("posterior (emcee)", settings.get("posterior")),
                             ("diagnosis", settings.get("diagnose"))) if on]
     return "".join(f", {w}" for w in said)
+
+
+def _corrected_points(ax, results: pd.DataFrame, name: str, where: dict, k: float) -> None:
+    """The corrected model's estimates of ``name`` (``batch --diagnose``, traces with a
+    finding) beside the fit's, as open markers at the fit's positions ``where``."""
+    fix = results[(results["model"] == CORRECTED) & (results["parameter"] == name)
+                  & results["trace"].isin(list(where))]
+    if fix.empty:
+        return
+    x = np.array([where[t] for t in fix["trace"]]) + 0.08
+    y = fix["estimate"].to_numpy() * k
+    err = np.vstack([y - fix["low_90"].to_numpy() * k, fix["high_90"].to_numpy() * k - y])
+    ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, mfc="none", color="#264",
+                capsize=2, label="corrected (a finding)")
+    ax.legend(fontsize=7, loc="best")
 
 
 def _html_table(frame: pd.DataFrame) -> str:
@@ -528,11 +548,23 @@ def campaign_page(
         parts += [f"<h2>a, b, c, μ across the {'log' if cycles is not None else 'campaign'}"
                   "</h2>",
                   f"<img src='{e(figure)}' alt='a, b, c, mu per trace'>"]
-    parts += ["<h2>Population (random effects)</h2>",
-              "<p class='small'>mean: weights 1/(s² + tau²), Hartung–Knapp 90 % interval; "
-              "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
-              "interval. Only traces with status ok.</p>",
-              _html_table(population),
+    units = population["unit_column"].dropna() if "unit_column" in population else ()
+    shown = population.drop(columns=["method", "unit_column"], errors="ignore")
+    if len(units):
+        level = (f"<p class='small'>Two levels, the rig units of column {e(units.iloc[0])}: "
+                 "tau_trace, the spread between traces of one unit (pooled Paule–Mandel), "
+                 "then the unit means combined: mean with weights 1/(var_i + tau_unit²), "
+                 "Hartung–Knapp 90 % interval on units − 1 degrees of freedom; tau_unit, the "
+                 "spread between units beyond their means' errors; tau, the spread between "
+                 "traces with the units ignored; 90 % Q-profile intervals. Only traces with "
+                 "status ok, their fits (model baseline).</p>")
+    else:
+        shown = shown.drop(columns=[c for c in shown.columns if c.startswith(("tau_unit",
+                                    "tau_trace")) or c == "n_units"])
+        level = ("<p class='small'>mean: weights 1/(s² + tau²), Hartung–Knapp 90 % interval; "
+                 "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
+                 "interval. Only traces with status ok, their fits (model baseline).</p>")
+    parts += ["<h2>Population (random effects)</h2>", level, _html_table(shown),
               "<h2>Files</h2><p>results.csv / results.parquet (one row per trace and "
               "parameter), population.*"
               + (", changes.*" if changes is not None else "")
