@@ -44,6 +44,7 @@ def run_job(job: TraceJob) -> dict[str, Any]:
         return record
     from ewb_ident.diagnosis.diagnose import diagnose
 
+    _release_on_new_shape(trace)
     t0 = time.perf_counter()
     record |= {"verdict": None, "findings": [], "diagnosis_message": None}
     try:
@@ -58,6 +59,24 @@ def run_job(job: TraceJob) -> dict[str, Any]:
     if diag.findings and fix is not None and fix.params:
         record["corrected"] = _corrected(job, record, trace, diag, fix)
     return record | {"diagnose_seconds": time.perf_counter() - t0}
+
+
+#: The shape (samples, channels) of the trace this process diagnosed last.
+_LAST_SHAPE: list[tuple] = []
+
+
+def _release_on_new_shape(trace) -> None:
+    """Drop this process's compiled code when a trace of another shape comes: a
+    diagnosis compiles a model per mechanism and trace shape, and a long campaign of many
+    shapes would otherwise run into the kernel's limit on memory maps
+    (:func:`ewb_ident.diagnosis.diagnose.diagnose`, notes). Traces of one shape, the
+    usual campaign, keep reusing them; released programs are reloaded from disk."""
+    from ewb_ident.runtime import programs
+
+    shape = (trace.n, tuple(sorted(trace.channels)))
+    if _LAST_SHAPE and _LAST_SHAPE[0] != shape:
+        programs.release()
+    _LAST_SHAPE[:] = [shape]
 
 
 def _corrected(job: TraceJob, record: dict[str, Any], trace, diag, fix) -> dict[str, Any]:
