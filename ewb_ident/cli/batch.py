@@ -412,7 +412,7 @@ def _write(out: Path, campaign, records, group_by, provenance, settings, split) 
                             campaign.metadata_columns)
     trend, units = settings["trend"], settings["unit_column"]
     population = population_table(results, group_by, units=units)
-    changes = changes_table(results, group_by, units=units) if group_by else None
+    changes = changes_table(results, group_by) if group_by else None
     if changes is not None:
         changes.attrs["group_by"] = group_by
     trends = trend_table(results, trend) if trend is not None else None

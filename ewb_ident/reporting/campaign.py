@@ -184,13 +184,12 @@ def population_table(results: pd.DataFrame, group_by: str | None = None,
     return table
 
 
-def changes_table(results: pd.DataFrame, group_by: str, units: str | None = None
-                  ) -> pd.DataFrame:
+def changes_table(results: pd.DataFrame, group_by: str) -> pd.DataFrame:
     """Per parameter, the change of each later group (sorted) against the first: the
-    groups' random-effects means (two-level with ``units``, as in
-    :func:`population_table`), the difference with a 90 % interval, the practical
-    tolerance, ``P(|change| > tolerance)`` and whether it changed (that probability
-    above 0.95, as ``compare`` decides). Empty with fewer than two groups."""
+    groups' random-effects means (one level, every trace its own draw, also when the
+    campaign names units: docs/batch.md), the difference with a 90 % interval, the
+    practical tolerance, ``P(|change| > tolerance)`` and whether it changed (that
+    probability above 0.95, as ``compare`` decides). Empty with fewer than two groups."""
     ok = _usable(results)
     ok = ok[ok[group_by].notna()]
     labels = sorted(ok[group_by].unique(), key=str)
@@ -198,7 +197,7 @@ def changes_table(results: pd.DataFrame, group_by: str, units: str | None = None
     for after in labels[1:]:
         before = labels[0]
         for name in _ordered(ok["parameter"]):
-            sides = [_combined(ok[(ok[group_by] == g) & (ok["parameter"] == name)], units)
+            sides = [_combined(ok[(ok[group_by] == g) & (ok["parameter"] == name)])
                      for g in (before, after)]
             if None in sides:
                 continue
