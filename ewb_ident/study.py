@@ -583,7 +583,7 @@ def run_batch(
     client=None,
     progress: Callable[[int, int, dict[str, Any], bool], None] | None = None,
 ) -> tuple[list[dict[str, Any]], int]:
-    """Fit every trace of a batch, reusing the records an earlier run kept.
+    """Fit (sample, diagnose: as each job says) every trace of a batch, reusing records.
 
     Parameters
     ----------
@@ -607,7 +607,8 @@ def run_batch(
     import json
 
     from ewb_ident.data.outputs import null_nonfinite, write_json
-    from ewb_ident.inference.batch import fit_job, record_path
+    from ewb_ident.diagnosis.batch import run_job
+    from ewb_ident.inference.batch import record_path
 
     records: list[dict[str, Any] | None] = [None] * len(jobs)
     todo = []
@@ -623,7 +624,7 @@ def run_batch(
     reused = len(jobs) - len(todo)
     record_path(out_dir, "x").parent.mkdir(parents=True, exist_ok=True)
     for n, (i, record) in enumerate(
-        run_tasks(fit_job, [jobs[k] for k in todo], client=client), start=1
+        run_tasks(run_job, [jobs[k] for k in todo], client=client), start=1
     ):
         k = todo[i]
         records[k] = null_nonfinite(record)

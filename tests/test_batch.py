@@ -19,7 +19,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ewb_ident.cli import app
-from ewb_ident.inference.population import group_change, random_effects
+from ewb_ident.inference.population import group_change, random_effects, two_level
 
 runner = CliRunner()
 C_DEFAULT = 9.57e-4
@@ -88,6 +88,9 @@ def test_table_columns_errors_and_exit_code(campaign, first_run):
     ok = table[table["trace"] != "broken.csv"]
     assert (ok["status"] == "ok").all() and ok["converged"].all()
     assert (ok["interval_from"] == "stderr").all()
+    # not diagnosed, not sampled: no verdict, no findings, only the fit's rows
+    assert table["verdict"].isna().all() and table["findings"].isna().all()
+    assert (table["model"] == "baseline").all() and table["posterior_converged"].isna().all()
     # without current, the effective L, kb, M (and the held R, v) have no rows
     lean = set(ok.loc[ok["trace"] == "v1_2.csv", "parameter"])
     assert not lean & {"R", "L", "kb", "M", "v"} and {"a", "b", "c", "mu"} <= lean
@@ -127,6 +130,10 @@ def test_the_planted_change_is_found(campaign, first_run):
     assert {"all", "v1", "v2"} == set(pop["group"])
     row = pop[(pop["group"] == "all") & (pop["parameter"] == "c")].iloc[0]
     assert row["n_traces"] == 5 and row["tau_low_90"] <= row["tau"] <= row["tau_high_90"]
+    # the manifest's unit column: U0 and U1 have a trace of each version, U2 one
+    assert row["unit_column"] == "meta_unit" and row["n_units"] == 3
+    assert row["tau_unit_low_90"] <= row["tau_unit"] <= row["tau_unit_high_90"]
+    assert row["tau_trace_low_90"] <= row["tau_trace"] <= row["tau_trace_high_90"]
 
 
 def test_a_rerun_resumes_without_fitting(campaign, first_run, tmp_path):
@@ -211,13 +218,16 @@ def _bad_inputs(root: Path) -> dict[str, tuple[list[str], str]]:
         "trend text": ([m, "--trend", "hardware"], "--trend hardware: 'v1' is not a number"),
         "split-on alone": ([m, "--split-on", "force_N"], "--split-on is a setting of --cycles"),
         "unreachable": ([m, "--scheduler", "tcp://127.0.0.1:1"], "no Dask scheduler answered"),
+        "steps alone": ([m, "--steps", "100"], "--steps is a setting of --posterior"),
+        "bad steps": ([m, "--posterior", "--steps", "0"], "--steps"),
+        "unit column": ([m, "--unit-column", "rig"], "--unit-column rig: not a metadata column"),
     }
 
 
 @pytest.mark.parametrize("case", ["no path column", "empty", "missing file", "unreadable",
                                   "no source", "empty glob", "trace as manifest", "group-by",
                                   "r_eff", "trend column", "trend text", "split-on alone",
-                                  "unreachable"])
+                                  "unreachable", "steps alone", "bad steps", "unit column"])
 def test_bad_input_is_one_line_exit_2_and_nothing_written(campaign, tmp_path, case):
     args, message = _bad_inputs(campaign)[case]
     out = tmp_path / "out"
@@ -308,6 +318,54 @@ def test_random_effects_without_spread_is_the_weighted_mean():
     moved = group_change("c", random_effects([1e-3, 1.01e-3], [1e-5, 1e-5]),
                          random_effects([1.2e-3, 1.21e-3], [1e-5, 1e-5]))
     assert moved.changed and moved.low90 < 2e-4 < moved.high90
+
+
+def test_two_levels_separate_the_unit_spread_from_the_trace_spread():
+    """Seeded campaigns of 8 rig units x 4 traces with a known unit-to-unit spread (1.5)
+    and trace-to-trace spread within a unit (0.8): the two-level combination's 90 %
+    intervals of the mean, tau_unit and tau_trace hold the truth at about 90 %, and its
+    estimates centre on the truth; the one-level combination, which takes the 32 traces
+    as 32 independent draws, gives the mean an interval far too narrow."""
+    rng = np.random.default_rng(11)
+    n, units, per_unit, tau_unit, tau_trace = 300, 8, 4, 1.5, 0.8
+    label = np.repeat(np.arange(units), per_unit)
+    held = dict.fromkeys(("mean", "tau_unit", "tau_trace", "one_level_mean"), 0)
+    tau_u, tau_t = [], []
+    for _ in range(n):
+        s = rng.uniform(0.3, 1.0, units * per_unit)
+        y = (10.0 + rng.normal(0.0, tau_unit, units)[label]
+             + rng.normal(0.0, tau_trace, units * per_unit) + rng.normal(0.0, s))
+        got = two_level(y, s, [f"U{u}" for u in label])
+        assert (got.units.n, got.n_traces, got.repeated) == (units, units * per_unit, units)
+        held["mean"] += got.low90 <= 10.0 <= got.high90
+        held["tau_unit"] += got.units.tau_low90 <= tau_unit <= got.units.tau_high90
+        held["tau_trace"] += got.tau_trace_low90 <= tau_trace <= got.tau_trace_high90
+        one = random_effects(y, s)
+        held["one_level_mean"] += one.low90 <= 10.0 <= one.high90
+        tau_u.append(got.units.tau)
+        tau_t.append(got.tau_trace)
+    rate = {k: v / n for k, v in held.items()}
+    assert all(0.85 <= rate[k] <= 0.96 for k in ("mean", "tau_unit", "tau_trace")), rate
+    assert rate["one_level_mean"] < 0.75, rate
+    assert np.median(tau_u) == pytest.approx(tau_unit, rel=0.12)
+    assert np.median(tau_t) == pytest.approx(tau_trace, rel=0.08)
+
+
+def test_two_levels_with_one_trace_per_unit_are_one_level():
+    """No unit with a second trace: nothing to say about tau_trace, and the combination
+    over the units is the one-level one; a trace with no unit is a unit of its own."""
+    y, s = [1.0, 1.3, 0.8, 1.1], [0.1, 0.2, 0.1, 0.15]
+    two, one = two_level(y, s, ["A", "B", None, "D"]), random_effects(y, s)
+    assert two.tau_trace is None and two.repeated == 0 and two.units.n == 4
+    for field in ("mean", "low90", "high90"):
+        assert getattr(two, field) == pytest.approx(getattr(one, field), rel=1e-12)
+    assert two.units.tau == pytest.approx(one.tau, rel=1e-9)
+    # two traces of one unit, agreeing within their errors: the unit's weighted mean
+    same = two_level([1.0, 1.02, 2.0], [0.1, 0.1, 0.1], ["A", "A", "B"])
+    assert same.tau_trace == 0.0 and same.units.n == 2 and same.repeated == 1
+    means = random_effects([1.01, 2.0], [0.1 / np.sqrt(2.0), 0.1])
+    assert same.units.mean == pytest.approx(means.mean, rel=1e-12)
+    assert same.units.tau == pytest.approx(means.tau, rel=1e-9)
 
 
 # ---------------------------------------------------------------- simulate --set

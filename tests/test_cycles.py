@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -95,6 +96,36 @@ def test_a_rerun_reuses_every_cycle(log, runs):
     got = runner.invoke(app, ["batch", str(root / "log.parquet"), "--cycles", "--out",
                               str(dest)])
     assert got.exit_code == 0 and "6 reused, 0 fitted" in got.output
+
+
+def test_cycles_on_a_dask_cluster_of_processes_give_the_same_table(log, runs, tmp_path):
+    """The cycles are split here and written under OUT/cycles/; each is fitted on a worker
+    process of a real LocalCluster (not threads) that reads its cycle's file, and the
+    table, the trend and the split are those of the run in this process."""
+    from distributed import LocalCluster
+
+    root, _, _ = log
+    _, here = runs["parquet"]
+    remote = tmp_path / "remote"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster:
+        got = runner.invoke(app, ["batch", str(root / "log.parquet"), "--cycles", "--out",
+                                  str(remote), "--scheduler", cluster.scheduler_address])
+    assert got.exit_code == 0, got.output
+    assert f"on the Dask cluster at {cluster.scheduler_address} with 2 worker" in got.stdout
+    assert "0 reused, 6 fitted" in got.stdout
+    doc = json.loads((remote / "batch.json").read_text())
+    assert doc["where"]["kind"] == "dask" and doc["where"]["workers"] == 2
+    mine, theirs = (pd.read_parquet(d / "results.parquet") for d in (remote, here))
+    # the cycles' files are under each run's own folder; everything else is the same
+    assert [Path(t).relative_to(remote) for t in mine["trace"]] == \
+        [Path(t).relative_to(here) for t in theirs["trace"]]
+    pd.testing.assert_frame_equal(mine.drop(columns="trace"), theirs.drop(columns="trace"),
+                                  rtol=1e-9)
+    for name in ("trend", "cycles"):
+        a, b = (pd.read_csv(d / f"{name}.csv") for d in (remote, here))
+        cols = [c for c in a.columns if c != "trace"]
+        pd.testing.assert_frame_equal(a[cols], b[cols], rtol=1e-9)
 
 
 def test_a_log_too_long_for_a_trace_points_to_cycles(tmp_path):

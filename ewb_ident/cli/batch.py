@@ -82,16 +82,65 @@ def batch(
             show_default=False,
         ),
     ] = None,
+    unit_column: Annotated[
+        str | None,
+        typer.Option(
+            "--unit-column",
+            help="Metadata column naming each trace's rig unit: the population separates "
+            "the unit-to-unit spread from the trace-to-trace spread within a unit (default: "
+            "the manifest's 'unit' column, when it has one).",
+            show_default=False,
+        ),
+    ] = None,
+    diagnose: Annotated[
+        bool,
+        typer.Option(
+            "--diagnose",
+            help="Diagnose every trace as 'ewb-ident diagnose' does: fills verdict and "
+            "findings, and adds the corrected model's rows (model: corrected) for a trace "
+            "with a finding.",
+        ),
+    ] = False,
+    posterior: Annotated[
+        bool,
+        typer.Option(
+            "--posterior",
+            help="Sample every trace's posterior (emcee, as 'ewb-ident sample'): each "
+            "interval is the 90 % HDI (interval_from: posterior).",
+        ),
+    ] = False,
+    steps: Annotated[
+        int | None,
+        typer.Option(help="With --posterior: MCMC steps per ensemble planned (default 2000).",
+                     show_default=False),
+    ] = None,
+    max_steps: Annotated[
+        int | None,
+        typer.Option(help="With --posterior: extend each run until converged or this many "
+                     "steps (default 10x --steps).", show_default=False),
+    ] = None,
+    min_ess: Annotated[
+        float | None,
+        typer.Option(help="With --posterior: ESS every parameter needs (default 400).",
+                     show_default=False),
+    ] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option(help="With --posterior: seed of the MCMC, the same for every trace "
+                     "(default 0).", show_default=False),
+    ] = None,
     mapping: Mapping = None,
     fill_gaps: FillGaps = False,
     no_unit_check: NoUnitCheck = False,
     r_eff: REff = None,
 ) -> None:
-    """Refit every trace of a campaign (whole chain): writes OUT/results.{parquet,csv},
+    """Refit every trace of a campaign (whole chain; with --posterior and --diagnose also
+    its posterior, diagnosis and corrected model): writes OUT/results.{parquet,csv},
     OUT/population.*, OUT/changes.* (with --group-by), OUT/trend.* (with --trend or
     --cycles), OUT/index.html and OUT/batch.json. A rerun into the same OUT reuses the
     traces whose files and settings are unchanged. Exits 3 when a trace failed, did not
-    converge or is outside the acceptance."""
+    converge or is outside the acceptance, or its posterior or diagnosis did not."""
+    import dataclasses
     import math
 
     from ewb_ident.study import CONNECT_TIMEOUT_S, WORKER_TIMEOUT_S
@@ -100,6 +149,7 @@ def batch(
     worker_timeout = WORKER_TIMEOUT_S if worker_timeout is None else worker_timeout
     if not (math.isfinite(worker_timeout) and worker_timeout > 0):
         fail(f"--worker-timeout must be a positive number of seconds, got {worker_timeout!r}")
+    sampler = _sampler(posterior, steps, max_steps, min_ess, seed)
     import ewb_ident
     from ewb_ident.data.campaign import CampaignError, resolve_campaign
     from ewb_ident.inference.batch import make_job
@@ -116,13 +166,17 @@ def batch(
         typer.echo(f"{source}: metadata column {old!r} is {new!r} in the results table "
                    f"({old!r} is the parameter's unit there)", err=True)
     group_by = campaign.renamed.get(group_by, group_by)
+    if unit_column is None and "unit" in campaign.renamed:  # the manifest's own 'unit'
+        unit_column = "unit"
+    unit_column = campaign.renamed.get(unit_column, unit_column)
     # Every check of the command line before the logs are split (which writes cycles/).
     from ewb_ident.data.cycles import CYCLE_COLUMNS
 
     if cycles:
         trend = "time_h" if trend is None else trend
     columns = (*campaign.metadata_columns, *(CYCLE_COLUMNS if cycles else ()))
-    for option, column in (("--group-by", group_by), ("--trend", trend)):
+    for option, column in (("--group-by", group_by), ("--trend", trend),
+                           ("--unit-column", unit_column)):
         if column is not None and column not in columns:
             have = ", ".join(columns) or "none (give a manifest)"
             fail(f"{option} {column}: not a metadata column of {source} (columns: {have})")
@@ -146,18 +200,43 @@ def batch(
             mapping = None  # the cycles are written in SI units under the format's names
         try:
             jobs = [make_job(e, fill_gaps=fill_gaps, check_units=not no_unit_check,
-                             version=ewb_ident.__version__) for e in campaign.entries]
+                             version=ewb_ident.__version__, posterior=sampler,
+                             diagnose=diagnose) for e in campaign.entries]
         except OSError as err:
             fail(f"{err.filename}: cannot read it ({err.strerror}); check its permissions")
         _run(campaign, jobs, out, client, group_by, source,
              {"map": mapping, "r_eff_m": r_eff, "fill_gaps": fill_gaps,
               "check_units": not no_unit_check, "group_by": group_by, "stage": "chain",
               "worker_timeout_s": worker_timeout, "trend": trend, "cycles": cycles,
-              "split": None if split is None else split[2]},
+              "split": None if split is None else split[2], "unit_column": unit_column,
+              "diagnose": diagnose,
+              "posterior": None if sampler is None else dataclasses.asdict(sampler)},
              split)
     finally:
         if client is not None:
             client.close()
+
+
+def _sampler(posterior: bool, steps, max_steps, min_ess, seed):
+    """The sampler settings of --posterior (``None`` without it); a sampler option
+    without --posterior, or a setting that cannot be used, is one line, exit 2."""
+    given = {"--steps": steps, "--max-steps": max_steps, "--min-ess": min_ess, "--seed": seed}
+    if not posterior:
+        named = [k for k, v in given.items() if v is not None]
+        if named:
+            fail(f"{named[0]} is a setting of --posterior; add --posterior or drop it")
+        return None
+    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
+
+    settings = SamplerSettings(n_steps=2000 if steps is None else steps, max_steps=max_steps,
+                               min_ess=400.0 if min_ess is None else min_ess,
+                               seed=0 if seed is None else seed)
+    try:
+        settings.check(names={"n_steps": "--steps", "max_steps": "--max-steps",
+                              "min_ess": "--min-ess", "seed": "--seed"})
+    except SampleError as err:
+        fail(str(err))
+    return settings
 
 
 def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool):
@@ -226,27 +305,60 @@ def _run(campaign, jobs, out: Path, client, group_by, source: str, settings,
     with Status("batch") as say:
 
         def progress(done: int, total: int, record: dict[str, Any], reused: bool) -> None:
-            how = "reused" if reused else f"{record.get('fit_seconds', 0):.1f} s"
+            spent = sum(record.get(k) or 0.0 for k in ("fit_seconds", "posterior_seconds",
+                                                       "diagnose_seconds"))
+            how = "reused" if reused else f"{spent:.1f} s"
             said = f": {record['message']}" if record["status"] == "error" else ""
-            say(f"{done}/{total} {record['trace']}: {record['status']} ({how}){said}")
+            found = (f", diagnosis {record['verdict']} {', '.join(record['findings'])}".rstrip()
+                     if record.get("verdict") is not None else "")
+            say(f"{done}/{total} {record['trace']}: {record['status']}{found} ({how}){said}")
 
         records, reused = run_batch(jobs, out, client=client, progress=progress)
     fitted = len(jobs) - reused
     counts = {"traces": len(jobs), "reused": reused, "fitted": fitted}
     for status in ("ok", "error", "not_converged", "poor_fit"):
         counts[status] = sum(r["status"] == status for r in records)
+    counts |= _extra_counts(records, settings)
     provenance = _provenance(campaign, jobs, records, where, settings, counts)
-    _write(out, campaign, records, group_by, provenance, settings["trend"], split)
+    _write(out, campaign, records, group_by, provenance, settings, split)
     typer.echo(f"{reused} reused, {fitted} fitted; wrote {out / 'results.parquet'}, "
                f"results.csv, population.*{', changes.*' if group_by else ''}"
                f"{', trend.*' if settings['trend'] else ''}"
                f"{', cycles.*' if settings['cycles'] else ''}, index.html and batch.json")
+    if settings["diagnose"]:
+        hits = [f"{r['trace']} ({', '.join(r['findings']) or r['verdict']})" for r in records
+                if r.get("verdict") in ("found", "unexplained")]
+        more = f", and {len(hits) - 5} more" if len(hits) > 5 else ""
+        typer.echo(f"diagnosis: {len(hits)} of {len(jobs)} traces carry a finding"
+                   + (f": {', '.join(hits[:5])}{more}" if hits else ""))
     bad = len(jobs) - counts["ok"]
     if bad:
         typer.echo(f"{bad} of {len(jobs)} traces not trustworthy: {counts['error']} failed, "
                    f"{counts['not_converged']} did not converge, {counts['poor_fit']} outside "
                    "the acceptance (see the flagged list in index.html)")
+    unsettled = counts.get("posterior_not_converged", 0) + counts.get("diagnosis_failed", 0)
+    if unsettled:
+        typer.echo(f"{counts.get('posterior_not_converged', 0)} posteriors did not converge "
+                   f"(more --steps), {counts.get('diagnosis_failed', 0)} diagnoses failed "
+                   "(see index.html and the message column)")
+    if bad or unsettled:
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _extra_counts(records, settings) -> dict[str, int]:
+    """Traces whose posterior (the fit's or the corrected model's) did not converge or
+    could not run, diagnoses that failed, traces with a finding."""
+    counts = {}
+    if settings["posterior"]:
+        counts["posterior_not_converged"] = sum(
+            r.get("posterior_converged") is False
+            or (r.get("corrected") or {}).get("posterior_converged") is False for r in records)
+    if settings["diagnose"]:
+        counts["diagnosis_failed"] = sum(r.get("diagnosis_message") is not None
+                                         for r in records)
+        counts["with_findings"] = sum(r.get("verdict") in ("found", "unexplained")
+                                      for r in records)
+    return counts
 
 
 def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, Any]:
@@ -283,7 +395,7 @@ def _provenance(campaign, jobs, records, where, settings, counts) -> dict[str, A
     }
 
 
-def _write(out: Path, campaign, records, group_by, provenance, trend, split) -> None:
+def _write(out: Path, campaign, records, group_by, provenance, settings, split) -> None:
     from ewb_ident.data.outputs import json_writer, null_nonfinite, write_run
     from ewb_ident.reporting.campaign import (
         campaign_page,
@@ -298,7 +410,8 @@ def _write(out: Path, campaign, records, group_by, provenance, trend, split) -> 
 
     results = results_table(records, [e.metadata for e in campaign.entries],
                             campaign.metadata_columns)
-    population = population_table(results, group_by)
+    trend, units = settings["trend"], settings["unit_column"]
+    population = population_table(results, group_by, units=units)
     changes = changes_table(results, group_by) if group_by else None
     if changes is not None:
         changes.attrs["group_by"] = group_by
@@ -350,10 +463,12 @@ def _echo_tables(population, changes, trends=None) -> None:
     if not pop.empty:
         typer.echo("population (random effects; 90 % intervals; a, c, p-coefficients in mm/µm/nm):")
         for r in pop.itertuples():
+            spread = (f"tau {shown(r.unit, r.tau)}  (n = {r.n_traces})" if r.n_units is None
+                      or r.n_units != r.n_units else
+                      f"tau_unit {shown(r.unit, r.tau_unit)}, tau_trace "
+                      f"{shown(r.unit, r.tau_trace)}  (n = {r.n_traces} in {int(r.n_units)} units)")
             typer.echo(f"  {r.parameter:<5} mean {shown(r.unit, r.mean)} "
-                       f"[{shown(r.unit, r.low_90)}, "
-                       f"{shown(r.unit, r.high_90)}]  tau "
-                       f"{shown(r.unit, r.tau)}  (n = {r.n_traces})")
+                       f"[{shown(r.unit, r.low_90)}, {shown(r.unit, r.high_90)}]  {spread}")
     if changes is not None and not changes.empty:
         moved = changes[changes["changed"]]
         typer.echo("changed: " + (", ".join(

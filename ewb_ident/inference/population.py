@@ -20,6 +20,12 @@ trace-to-trace (unit-to-unit) spread and ``e_i ~ N(0, s_i^2)`` the measurement e
   ``tau^2`` at which the generalised Q statistic equals the 95 % and 5 % quantiles of
   chi-square with ``k - 1`` degrees of freedom.
 
+When the traces come from rig units with several traces each, :func:`two_level` separates
+the unit-to-unit spread from the trace-to-trace spread within a unit: a pooled
+Paule-Mandel estimate of the within-unit spread first, then the units' means combined as
+above (the population mean's interval then has ``units - 1`` degrees of freedom, not
+``traces - 1``: repeated traces of one unit are not independent draws of the population).
+
 A group change is the difference of two groups' means, each combined as above, with a
 Welch-Satterthwaite t interval; whether it changed is decided as
 :func:`ewb_ident.inference.compare.compare` decides it for two traces (the probability
@@ -80,18 +86,19 @@ def _generalised_q(tau2: float, y: np.ndarray, v: np.ndarray) -> float:
     return float(np.sum(w * (y - mu) ** 2))
 
 
-def _q_profile(y: np.ndarray, v: np.ndarray, target: float) -> float:
-    """The ``tau^2 >= 0`` at which the generalised Q equals ``target`` (0 when even
-    ``tau^2 = 0`` gives less). Q falls monotonically in ``tau^2``."""
-    if _generalised_q(0.0, y, v) <= target:
+def _q_profile(y: np.ndarray, v: np.ndarray, target: float, q=None) -> float:
+    """The ``tau^2 >= 0`` at which the generalised Q (``q(tau2, y, v)``, default
+    :func:`_generalised_q`) equals ``target`` (0 when even ``tau^2 = 0`` gives less). Q
+    falls monotonically in ``tau^2``."""
+    q = q or _generalised_q
+    if q(0.0, y, v) <= target:
         return 0.0
     hi = max(float(np.var(y)), float(np.max(v)))
-    while _generalised_q(hi, y, v) > target:
+    while q(hi, y, v) > target:
         hi *= 10.0
     # (a tolerance relative to the bracket: tau^2 of the gap polynomial's p2 is ~1e-19,
     # far below brentq's default absolute tolerance of 2e-12)
-    return float(optimize.brentq(lambda t2: _generalised_q(t2, y, v) - target, 0.0, hi,
-                                 xtol=hi * 1e-14))
+    return float(optimize.brentq(lambda t2: q(t2, y, v) - target, 0.0, hi, xtol=hi * 1e-14))
 
 
 def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Combined | None:
@@ -137,10 +144,131 @@ def random_effects(estimates: Sequence[float], stderrs: Sequence[float]) -> Comb
     )
 
 
+@dataclass(frozen=True)
+class TwoLevel:
+    """The combination of one parameter's per-trace estimates when several traces come
+    from each rig unit: ``y_ij = theta + u_i + v_ij + e_ij`` (unit ``i``, trace ``j``),
+    ``u_i ~ N(0, tau_unit^2)`` the unit-to-unit spread, ``v_ij ~ N(0, tau_trace^2)`` the
+    trace-to-trace spread within a unit, ``e_ij ~ N(0, s_ij^2)`` the measurement error
+    (see :func:`two_level`).
+
+    Attributes
+    ----------
+    units
+        The random-effects combination of the unit means (:func:`random_effects`): its
+        ``n`` is the number of units, ``tau`` (with its Q-profile interval) the
+        unit-to-unit spread, ``mean`` and its interval (``n_units - 1`` degrees of
+        freedom) the population mean.
+    n_traces
+        Traces used.
+    repeated
+        Units with two traces or more (those that say anything about ``tau_trace``).
+    tau_trace, tau_trace_low90, tau_trace_high90
+        The trace-to-trace spread within a unit (pooled Paule-Mandel) and its 90 %
+        Q-profile interval; ``None`` when no unit has two traces.
+    """
+
+    units: Combined
+    n_traces: int
+    repeated: int
+    tau_trace: float | None
+    tau_trace_low90: float | None
+    tau_trace_high90: float | None
+
+    # The population's mean, as :class:`Combined` has it (for :func:`group_change`).
+    @property
+    def n(self) -> int:
+        return self.n_traces
+
+    @property
+    def mean(self) -> float:
+        return self.units.mean
+
+    @property
+    def stderr(self) -> float:
+        return self.units.stderr
+
+    @property
+    def df(self) -> float:
+        return self.units.df
+
+    @property
+    def low90(self) -> float:
+        return self.units.low90
+
+    @property
+    def high90(self) -> float:
+        return self.units.high90
+
+
+def _within_q(tau2: float, y: np.ndarray, v: np.ndarray, groups: np.ndarray) -> float:
+    """The generalised Q of every trace about its own unit's weighted mean, summed."""
+    w = 1.0 / (v + tau2)
+    sw = np.bincount(groups, weights=w)
+    means = np.bincount(groups, weights=w * y) / sw
+    return float(np.sum(w * (y - means[groups]) ** 2))
+
+
+def two_level(
+    estimates: Sequence[float],
+    stderrs: Sequence[float],
+    units: Sequence[object],
+) -> TwoLevel | None:
+    """Combine per-trace estimates of one parameter from several traces per rig unit
+    (see :class:`TwoLevel`), in two steps:
+
+    1. ``tau_trace^2``, pooled over the units: the Paule-Mandel value at which the
+       generalised Q of the traces about their own unit's weighted mean, summed over the
+       units, equals its expectation ``sum (n_i - 1)``; its 90 % interval by the
+       Q-profile on chi-square with ``sum (n_i - 1)`` degrees of freedom. (0, and
+       ``None`` reported, when no unit has two traces.)
+    2. Each unit's mean, weighted by ``1 / (s_ij^2 + tau_trace^2)``, with the variance
+       ``1 / sum of the weights``; the unit means combined by :func:`random_effects`
+       (Paule-Mandel ``tau_unit``, Hartung-Knapp mean interval on ``n_units - 1``
+       degrees of freedom, Q-profile ``tau_unit`` interval).
+
+    A trace with no unit (``None``) is a unit of its own. The uncertainty of
+    ``tau_trace`` is not carried into step 2 (as in two-stage meta-analysis).
+
+    Returns
+    -------
+    TwoLevel or None
+        ``None`` when no trace is usable (a missing, non-finite or non-positive
+        standard error leaves a trace out).
+    """
+    y = np.asarray(estimates, dtype=float)
+    s = np.asarray([np.nan if e is None else e for e in stderrs], dtype=float)
+    labels = [f"trace:{k}" if u is None or u != u else f"unit:{u}" for k, u in enumerate(units)]
+    keep = np.isfinite(y) & np.isfinite(s) & (s > 0)
+    y, v = y[keep], s[keep] ** 2
+    if y.size == 0:
+        return None
+    _, groups = np.unique(np.asarray(labels)[keep], return_inverse=True)
+    sizes = np.bincount(groups)
+    df_within = int(np.sum(sizes - 1))
+    if df_within > 0:
+
+        def q(t2, yy, vv):
+            return _within_q(t2, yy, vv, groups)
+
+        tau2 = _q_profile(y, v, float(df_within), q)
+        bounds = [math.sqrt(_q_profile(y, v, float(stats.chi2.ppf(0.5 + side * LEVEL / 2,
+                                                                  df_within)), q))
+                  for side in (1, -1)]
+        tau_t = (math.sqrt(tau2), *bounds)
+    else:
+        tau2, tau_t = 0.0, (None, None, None)
+    w = 1.0 / (v + tau2)
+    sw = np.bincount(groups, weights=w)
+    means = np.bincount(groups, weights=w * y) / sw
+    units_comb = random_effects(means, np.sqrt(1.0 / sw))
+    return TwoLevel(units_comb, int(y.size), int(np.sum(sizes > 1)), *tau_t)
+
+
 def group_change(
     name: str,
-    before: Combined,
-    after: Combined,
+    before: Combined | TwoLevel,
+    after: Combined | TwoLevel,
     tolerance: Mapping[str, float] | None = None,
 ) -> ParameterChange:
     """The change of a parameter's population mean from one group of traces to another.
@@ -150,7 +278,7 @@ def group_change(
     name
         The parameter (its default tolerance follows :func:`practical_tolerance`).
     before, after
-        The two groups' combinations (:func:`random_effects`).
+        The two groups' combinations (:func:`random_effects` or :func:`two_level`).
     tolerance
         Practical tolerance per parameter, SI units (default: 1 % of the ``before``
         mean, as ``compare`` uses).

@@ -23,21 +23,37 @@ import pandas as pd
 
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.units import shown_unit
-from ewb_ident.inference.population import group_change, random_effects, trend
+from ewb_ident.inference.population import group_change, random_effects, trend, two_level
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS
 from ewb_ident.reporting.html import CSS
 from ewb_ident.reporting.style import png_bytes, subplots
 
 #: The results table's own columns, in order; the manifest's metadata columns come
-#: after ``trace``. ``message`` and ``r_eff_m`` are more than the contract asks.
+#: after ``trace``. ``model`` and the columns after the metrics are more than the
+#: contract asks.
 PARAM_COLUMNS = ("parameter", "unit", "estimate", "stderr", "low_90", "high_90",
                  "interval_from", "converged", "status", "verdict", "findings")
 METRIC_COLUMNS = tuple(f"{ch}_nrmse_pct" for ch in CHANNELS)
-EXTRA_COLUMNS = ("message", "r_eff_m")
-RESULT_COLUMNS = ("trace", *PARAM_COLUMNS, *METRIC_COLUMNS, *EXTRA_COLUMNS)
-_FLOATS = ("estimate", "stderr", "low_90", "high_90", "r_eff_m", *METRIC_COLUMNS)
+EXTRA_COLUMNS = ("message", "r_eff_m", "posterior_mean", "posterior_sd", "posterior_converged")
+RESULT_COLUMNS = ("trace", *PARAM_COLUMNS, "model", *METRIC_COLUMNS, *EXTRA_COLUMNS)
+_FLOATS = ("estimate", "stderr", "low_90", "high_90", "r_eff_m", "posterior_mean",
+           "posterior_sd", *METRIC_COLUMNS)
 #: Parameters the report plots (where the campaign fitted them).
 PLOTTED = ("a", "b", "c", "mu")
+#: The ``model`` of a row: the seed chain every trace is fitted with, or the chain
+#: corrected by the trace's findings (``batch --diagnose``).
+BASELINE, CORRECTED = "baseline", "corrected"
+
+
+def _messages(*parts: str | None) -> str | None:
+    said = [p for p in parts if p]
+    return "; ".join(said) if said else None
+
+
+def _rows(common, params, tail) -> list[dict[str, Any]]:
+    if not params:
+        return [common | dict.fromkeys(PARAM_COLUMNS[:7]) | tail]
+    return [common | {"parameter": name} | p | tail for name, p in params.items()]
 
 
 def results_table(
@@ -45,12 +61,14 @@ def results_table(
     metadata: Sequence[dict[str, Any]],
     metadata_columns: Sequence[str],
 ) -> pd.DataFrame:
-    """The tidy results table (see the module docstring).
+    """The tidy results table (see the module docstring): per trace, a row per parameter
+    of the fit (``model``: ``baseline``), and for a trace whose diagnosis found missing
+    physics a row per parameter of the corrected model (``corrected``).
 
     Parameters
     ----------
     records
-        Per trace, the record of :func:`ewb_ident.inference.batch.fit_job`.
+        Per trace, the record of :func:`ewb_ident.diagnosis.batch.run_job`.
     metadata
         Per trace, its metadata (the manifest's row), in the same order.
     metadata_columns
@@ -59,38 +77,59 @@ def results_table(
     rows = []
     for rec, meta in zip(records, metadata, strict=True):
         common = {"trace": rec["trace"], **{c: meta.get(c) for c in metadata_columns}}
-        tail = {
-            "converged": rec.get("converged"),
-            "status": rec["status"],
-            "verdict": None,  # the batch does not diagnose (yet): no verdict, no findings
-            "findings": None,
-            **{f"{ch}_nrmse_pct": rec["metrics"].get(ch) for ch in CHANNELS},
-            "message": rec.get("message"),
+        diagnosed = rec.get("verdict") is not None
+        trace_level = {
+            "verdict": rec.get("verdict"),  # None: not diagnosed (or the diagnosis failed)
+            "findings": ";".join(rec.get("findings") or ()) if diagnosed else None,
             "r_eff_m": rec.get("r_eff_m"),
         }
-        params = rec["params"] if rec["status"] != "error" else {}
-        if not params:
-            rows.append(common | dict.fromkeys(PARAM_COLUMNS[:7]) | tail)
-        for name, p in params.items():
-            rows.append(common | {"parameter": name} | p | tail)
+        tail = trace_level | {
+            "converged": rec.get("converged"),
+            "status": rec["status"],
+            "model": BASELINE,
+            **{f"{ch}_nrmse_pct": rec["metrics"].get(ch) for ch in CHANNELS},
+            "message": _messages(rec.get("message"), rec.get("posterior_message"),
+                                 rec.get("diagnosis_message")),
+            "posterior_converged": rec.get("posterior_converged"),
+        }
+        rows += _rows(common, rec["params"] if rec["status"] != "error" else {}, tail)
+        fix = rec.get("corrected")
+        if fix:
+            rows += _rows(common, fix["params"], trace_level | {
+                "converged": fix["converged"],
+                "status": "ok" if fix["converged"] else "not_converged",
+                "model": CORRECTED,
+                **{f"{ch}_nrmse_pct": fix["metrics"].get(ch) for ch in CHANNELS},
+                "message": _messages(
+                    f"corrected by {', '.join(fix['mechanisms']) or 'learned terms'}",
+                    fix.get("posterior_message")),
+                "posterior_converged": fix.get("posterior_converged"),
+            })
     order = ["trace", *metadata_columns, *RESULT_COLUMNS[1:]]
     table = pd.DataFrame(rows, columns=order)
     for col in _FLOATS:
         table[col] = table[col].astype("float64")
-    table["converged"] = table["converged"].astype("boolean")
+    for col in ("converged", "posterior_converged"):
+        table[col] = table[col].astype("boolean")
     for col in ("trace", "parameter", "unit", "interval_from", "status", "verdict", "findings",
-                "message"):
+                "model", "message"):
         table[col] = table[col].astype("string")
     return table
 
 
 def _usable(results: pd.DataFrame) -> pd.DataFrame:
-    """Rows of traces whose fit converged within the acceptance (status ``ok``)."""
-    return results[(results["status"] == "ok") & results["parameter"].notna()]
+    """Rows of the fit (``model`` baseline, the model every trace shares) of traces whose
+    fit converged within the acceptance (status ``ok``)."""
+    return results[(results["status"] == "ok") & results["parameter"].notna()
+                   & (results["model"] == BASELINE)]
 
 
-def _combined(rows: pd.DataFrame):
-    """The random-effects combination of one parameter's rows (``None``: none usable)."""
+def _combined(rows: pd.DataFrame, units: str | None = None):
+    """The random-effects combination of one parameter's rows (``None``: none usable);
+    with ``units`` (a metadata column naming each trace's rig unit) the two-level one."""
+    if units is not None:
+        return two_level(rows["estimate"].to_numpy(), rows["stderr"].to_numpy(float),
+                         rows[units].tolist())
     return random_effects(rows["estimate"].to_numpy(), rows["stderr"].to_numpy(float))
 
 
@@ -98,9 +137,20 @@ def _ordered(names) -> list[str]:
     return sorted(set(names), key=lambda n: MODEL_PARAMS.index(n) if n in MODEL_PARAMS else 99)
 
 
-def population_table(results: pd.DataFrame, group_by: str | None = None) -> pd.DataFrame:
+#: The population table's ``method`` without and with a unit column.
+ONE_LEVEL = "Paule-Mandel tau, Hartung-Knapp mean interval, Q-profile tau interval"
+TWO_LEVEL = ("unit means (pooled Paule-Mandel tau_trace within units), then Paule-Mandel "
+             "tau_unit and Hartung-Knapp mean interval over the units; Q-profile tau intervals")
+
+
+def population_table(results: pd.DataFrame, group_by: str | None = None,
+                     units: str | None = None) -> pd.DataFrame:
     """Per parameter: the random-effects combination of the traces with status ``ok``;
-    with ``group_by``, also per group (``group`` column; ``"all"``: every trace)."""
+    with ``group_by``, also per group (``group`` column; ``"all"``: every trace). With
+    ``units`` (the metadata column naming each trace's rig unit), the mean and its
+    interval are the two-level model's (:func:`~ewb_ident.inference.population.two_level`)
+    and ``tau_unit``, ``tau_trace`` separate the unit-to-unit from the trace-to-trace
+    spread; ``tau`` is always the spread between traces with the units ignored."""
     ok = _usable(results)
     groups: list[tuple[str, pd.DataFrame]] = [("all", ok)]
     if group_by is not None:
@@ -108,24 +158,38 @@ def population_table(results: pd.DataFrame, group_by: str | None = None) -> pd.D
     rows = []
     for label, sub in groups:
         for name in _ordered(sub["parameter"]):
-            comb = _combined(sub[sub["parameter"] == name])
+            one = sub[sub["parameter"] == name]
+            comb = _combined(one)
             if comb is None:
                 continue
+            two = _combined(one, units) if units is not None else None
+            top = two if two is not None else comb
             rows.append({
                 "group": label, "parameter": name, "unit": PARAMS[name].unit,
-                "n_traces": comb.n, "mean": comb.mean, "stderr": comb.stderr,
-                "low_90": comb.low90, "high_90": comb.high90, "tau": comb.tau,
+                "n_traces": comb.n, "mean": top.mean, "stderr": top.stderr,
+                "low_90": top.low90, "high_90": top.high90, "tau": comb.tau,
                 "tau_low_90": comb.tau_low90, "tau_high_90": comb.tau_high90, "q": comb.q,
-                "method": "Paule-Mandel tau, Hartung-Knapp mean interval, Q-profile tau interval",
+                "unit_column": units, "n_units": None if two is None else two.units.n,
+                "tau_unit": None if two is None else two.units.tau,
+                "tau_unit_low_90": None if two is None else two.units.tau_low90,
+                "tau_unit_high_90": None if two is None else two.units.tau_high90,
+                "tau_trace": None if two is None else two.tau_trace,
+                "tau_trace_low_90": None if two is None else two.tau_trace_low90,
+                "tau_trace_high_90": None if two is None else two.tau_trace_high90,
+                "method": ONE_LEVEL if two is None else TWO_LEVEL,
             })
-    return pd.DataFrame(rows)
+    table = pd.DataFrame(rows)
+    for col in ("n_units", *(c for c in table.columns if c.startswith("tau"))):
+        table[col] = pd.to_numeric(table[col]).astype("float64")  # empty: NaN, not None
+    return table
 
 
 def changes_table(results: pd.DataFrame, group_by: str) -> pd.DataFrame:
     """Per parameter, the change of each later group (sorted) against the first: the
-    groups' random-effects means, the difference with a 90 % interval, the practical
-    tolerance, ``P(|change| > tolerance)`` and whether it changed (that probability
-    above 0.95, as ``compare`` decides). Empty with fewer than two groups."""
+    groups' random-effects means (one level, every trace its own draw, also when the
+    campaign names units: docs/batch.md), the difference with a 90 % interval, the
+    practical tolerance, ``P(|change| > tolerance)`` and whether it changed (that
+    probability above 0.95, as ``compare`` decides). Empty with fewer than two groups."""
     ok = _usable(results)
     ok = ok[ok[group_by].notna()]
     labels = sorted(ok[group_by].unique(), key=str)
@@ -282,8 +346,38 @@ def split_figure(logs: Sequence[Any]) -> bytes:
 
 def flagged(results: pd.DataFrame) -> pd.DataFrame:
     """One row per trace that failed, did not converge or is outside the acceptance."""
-    bad = results[results["status"] != "ok"]
+    bad = results[(results["status"] != "ok") & (results["model"] == BASELINE)]
     return bad.drop_duplicates("trace")[["trace", "status", "message"]].reset_index(drop=True)
+
+
+def with_findings(results: pd.DataFrame) -> pd.DataFrame:
+    """One row per trace whose diagnosis located a mismatch (verdict ``found`` or
+    ``unexplained``): its findings and a, b, c, mu of the fit beside the corrected
+    model's (shown units)."""
+    hit = results[results["verdict"].isin(["found", "unexplained"])]
+    rows = []
+    for trace, one in hit.groupby("trace", sort=False):
+        first = one.iloc[0]
+        row = {"trace": trace, "verdict": first["verdict"], "findings": first["findings"]}
+        for name in PLOTTED:
+            unit, k = shown_unit(PARAMS[name].unit)
+            got = {m: one[(one["model"] == m) & (one["parameter"] == name)]["estimate"]
+                   for m in (BASELINE, CORRECTED)}
+            if got[BASELINE].empty:
+                continue
+            after = f"{got[CORRECTED].iloc[0] * k:.4g}" if not got[CORRECTED].empty else "–"
+            label = name if unit == "1" else f"{name} ({unit})"
+            row[f"{label} fit → corrected"] = f"{got[BASELINE].iloc[0] * k:.4g} → {after}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def unconverged_posteriors(results: pd.DataFrame) -> pd.DataFrame:
+    """One row per trace and model whose posterior was sampled and did not converge (or
+    could not be sampled)."""
+    bad = results[results["posterior_converged"].eq(False).fillna(False)]
+    return bad.drop_duplicates(["trace", "model"])[["trace", "model", "message"]] \
+        .reset_index(drop=True)
 
 
 def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None:
@@ -319,7 +413,9 @@ def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None
                     ax.plot([j - 0.25, j + 0.25], [comb.mean * k] * 2, color="#246", lw=1.5)
         y = one["estimate"].to_numpy() * k
         err = np.vstack([y - one["low_90"].to_numpy() * k, one["high_90"].to_numpy() * k - y])
-        ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, color="#b22", capsize=2)
+        ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, color="#b22", capsize=2,
+                    label="fit")
+        _corrected_points(ax, results, name, dict(zip(one["trace"], x, strict=True)), k)
         ax.set_ylabel(f"{name} ({unit})" if unit != "1" else name)
         if against is not None:
             ax.set_xticks(range(len(cats)), [str(c) for c in cats])
@@ -330,6 +426,28 @@ def parameter_figure(results: pd.DataFrame, against: str | None) -> bytes | None
                  fontsize=9)
     fig.set_layout_engine("constrained")
     return png_bytes(fig)
+
+
+def _extras(provenance: dict[str, Any]) -> str:
+    settings = provenance.get("settings", {})
+    said = [w for w, on in (("posterior (emcee)", settings.get("posterior")),
+                            ("diagnosis", settings.get("diagnose"))) if on]
+    return "".join(f", {w}" for w in said)
+
+
+def _corrected_points(ax, results: pd.DataFrame, name: str, where: dict, k: float) -> None:
+    """The corrected model's estimates of ``name`` (``batch --diagnose``, traces with a
+    finding) beside the fit's, as open markers at the fit's positions ``where``."""
+    fix = results[(results["model"] == CORRECTED) & (results["parameter"] == name)
+                  & results["trace"].isin(list(where))]
+    if fix.empty:
+        return
+    x = np.array([where[t] for t in fix["trace"]]) + 0.08
+    y = fix["estimate"].to_numpy() * k
+    err = np.vstack([y - fix["low_90"].to_numpy() * k, fix["high_90"].to_numpy() * k - y])
+    ax.errorbar(x, y, yerr=np.nan_to_num(err), fmt="o", ms=4, mfc="none", color="#264",
+                capsize=2, label="corrected (a finding)")
+    ax.legend(fontsize=7, loc="best")
 
 
 def _html_table(frame: pd.DataFrame) -> str:
@@ -358,6 +476,8 @@ def campaign_page(
     e = html.escape
     bad = flagged(results)
     n = results["trace"].nunique()
+    settings = provenance.get("settings", {})
+    diagnosed, sampled = bool(settings.get("diagnose")), bool(settings.get("posterior"))
     where = provenance["where"]
     ran = ("in this process" if where["kind"] == "in-process" else
            f"on the Dask cluster {where['address']} ({where['workers']} workers)")
@@ -365,9 +485,11 @@ def campaign_page(
         f"<!doctype html><html><head><meta charset='utf-8'><title>Campaign "
         f"{e(provenance['source'])}</title><style>{CSS}</style></head><body>",
         f"<h1>Campaign: {e(provenance['source'])}</h1>",
-        f"<p>{n} traces, whole-chain least squares, {ran}; "
+        f"<p>{n} traces, whole-chain least squares{_extras(provenance)}, {ran}; "
         f"{provenance['counts']['reused']} reused, {provenance['counts']['fitted']} fitted. "
-        "Intervals are 90 % everywhere (per trace: estimate ± 1.645 robust standard errors).</p>",
+        "Intervals are 90 % everywhere (per trace: "
+        + ("the posterior's HDI" if sampled else "estimate ± 1.645 robust standard errors")
+        + ").</p>",
     ]
     if len(bad):
         parts += [f"<div class='warn'>{len(bad)} of {n} traces flagged (failed, not converged "
@@ -375,6 +497,22 @@ def campaign_page(
                   "changes.</div>", _html_table(bad)]
     else:
         parts.append(f"<div class='ok'>All {n} traces converged within the acceptance.</div>")
+    if diagnosed:
+        found = with_findings(results)
+        parts.append(
+            f"<div class='warn'>{len(found)} of {n} traces carry a finding: the diagnosis "
+            "located physics the model leaves out (results.* rows with model = corrected hold "
+            "the corrected model's parameters; the population and the changes are of the "
+            "fit every trace shares).</div>" if len(found) else
+            f"<div class='ok'>The diagnosis located no missing physics in any of the {n} "
+            "traces.</div>")
+        if len(found):
+            parts.append(_html_table(found))
+    unsettled = unconverged_posteriors(results)
+    if len(unsettled):
+        parts += [f"<div class='warn'>{unsettled['trace'].nunique()} of {n} traces have a "
+                  "posterior that did not converge (its intervals are not yet trustworthy: "
+                  "more --steps).</div>", _html_table(unsettled)]
     if changes is not None:
         moved = changes[changes["changed"]] if not changes.empty else changes
         said = (", ".join(f"{r.parameter} ({r.before} → {r.after}: {r.delta_pct:+.1f} %)"
@@ -409,11 +547,23 @@ def campaign_page(
         parts += [f"<h2>a, b, c, μ across the {'log' if cycles is not None else 'campaign'}"
                   "</h2>",
                   f"<img src='{e(figure)}' alt='a, b, c, mu per trace'>"]
-    parts += ["<h2>Population (random effects)</h2>",
-              "<p class='small'>mean: weights 1/(s² + tau²), Hartung–Knapp 90 % interval; "
-              "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
-              "interval. Only traces with status ok.</p>",
-              _html_table(population),
+    units = population["unit_column"].dropna() if "unit_column" in population else ()
+    shown = population.drop(columns=["method", "unit_column"], errors="ignore")
+    if len(units):
+        level = (f"<p class='small'>Two levels, the rig units of column {e(units.iloc[0])}: "
+                 "tau_trace, the spread between traces of one unit (pooled Paule–Mandel), "
+                 "then the unit means combined: mean with weights 1/(var_i + tau_unit²), "
+                 "Hartung–Knapp 90 % interval on units − 1 degrees of freedom; tau_unit, the "
+                 "spread between units beyond their means' errors; tau, the spread between "
+                 "traces with the units ignored; 90 % Q-profile intervals. Only traces with "
+                 "status ok, their fits (model baseline).</p>")
+    else:
+        shown = shown.drop(columns=[c for c in shown.columns if c.startswith(("tau_unit",
+                                    "tau_trace")) or c == "n_units"])
+        level = ("<p class='small'>mean: weights 1/(s² + tau²), Hartung–Knapp 90 % interval; "
+                 "tau: spread between traces beyond their measurement errors, 90 % Q-profile "
+                 "interval. Only traces with status ok, their fits (model baseline).</p>")
+    parts += ["<h2>Population (random effects)</h2>", level, _html_table(shown),
               "<h2>Files</h2><p>results.csv / results.parquet (one row per trace and "
               "parameter), population.*"
               + (", changes.*" if changes is not None else "")
