@@ -41,8 +41,41 @@ from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap
 if TYPE_CHECKING:  # the mechanisms implement hooks this module calls
     from ewb_ident.mechanisms.base import AbstractMechanism
 
-#: Hooks that act inside the motor integration.
+#: The evaluator's insertion points, in the order of the chain: each place where physics
+#: can enter, with the hooks (:mod:`ewb_ident.mechanisms.base`) through which a catalog
+#: mechanism, a function given to :func:`simulate_chain` or a learned term
+#: (:data:`ewb_ident.mechanisms.learned.PLACES`) acts there. ``output:<stage>`` is the
+#: ``output`` hook at that stage (an additive correction of its output). The sensors are
+#: one place per channel, ``sensor.<channel>``. docs/model.md has the table in words.
+INSERTION_POINTS: dict[str, tuple[str, ...]] = {
+    "motor.electrical": ("voltage", "voltage_series"),
+    "motor.mechanical": ("load_torque", "motor_friction", "load_series"),
+    "gap": ("wedge_angle",),
+    "drive": ("output:gap",),
+    "force.input": ("force_input",),
+    "force.output": ("clamp_force", "output:force"),
+    "friction": ("friction_coefficient",),
+    "torque.output": ("output:torque",),
+    "sensor": ("sensor",),
+}
+
+#: Hooks that act inside the motor integration, within each sample (the integrator's
+#: ``voltage``, ``load`` and ``friction`` terms).
 MOTOR_HOOKS: tuple[str, ...] = ("voltage", "motor_friction", "load_torque")
+
+
+def insertion_points(mechanism: AbstractMechanism) -> tuple[str, ...]:
+    """The insertion points (keys of :data:`INSERTION_POINTS`, a sensor's as
+    ``sensor.<channel>`` when it names one) at which a mechanism acts."""
+    out = []
+    for place, hooks in INSERTION_POINTS.items():
+        for spec in hooks:
+            hook, _, stage = spec.partition(":")
+            if mechanism.uses(hook) and (not stage or mechanism.stage == stage):
+                channel = getattr(mechanism, "channel", None)
+                out.append(f"sensor.{channel}" if place == "sensor" and channel else place)
+                break
+    return tuple(out)
 
 
 def n_substeps(dt: float, mechanisms: Sequence[AbstractMechanism]) -> int:
