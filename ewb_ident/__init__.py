@@ -47,8 +47,8 @@ _PUBLIC = {
     "EWBParams": "model.params",
     "Integrator": "model.integrate",
     "NumericalWarning": "model.integrate",
-    "simulate_chain": "model.integrate",
-    "simulate_motor": "model.integrate",
+    "simulate_chain": "model.predict",
+    "simulate_motor": "model.predict",
     "Trace": "data.trace",
     "TraceError": "data.trace",
     "InputError": "data.trace",
@@ -91,11 +91,11 @@ if TYPE_CHECKING:
     from ewb_ident.inference.validate import validate as validate
     from ewb_ident.model.integrate import Integrator as Integrator
     from ewb_ident.model.integrate import NumericalWarning as NumericalWarning
-    from ewb_ident.model.integrate import simulate_chain as simulate_chain
-    from ewb_ident.model.integrate import simulate_motor as simulate_motor
     from ewb_ident.model.params import PARAMS as PARAMS
     from ewb_ident.model.params import SEED as SEED
     from ewb_ident.model.params import EWBParams as EWBParams
+    from ewb_ident.model.predict import simulate_chain as simulate_chain
+    from ewb_ident.model.predict import simulate_motor as simulate_motor
     from ewb_ident.runtime.config import configure as configure
 
 

@@ -34,8 +34,9 @@ def run(out_dir: Path, progress=None):
     from ewb_ident import rig
     from ewb_ident.data.metrics import SEED_PERCENT_ERROR
     from ewb_ident.inference.least_squares import fit
-    from ewb_ident.model.integrate import SEED_HEUN, heun_amplification, simulate_chain
+    from ewb_ident.model.integrate import SEED_HEUN, heun_amplification
     from ewb_ident.model.params import SEED
+    from ewb_ident.model.predict import simulate_chain
     from ewb_ident.reporting.html import figure_bell, figure_fit
 
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@
 
 Diagnoses ``TRACE`` (default: the shipped concealed stiction trace) once per longest
 sub-step of the motor integration with mechanisms
-(:data:`ewb_ident.model.predict.MAX_SUBSTEP_S`, 0.5 ms in the package), and prints each
+(:data:`ewb_ident.model.integrate.MAX_SUBSTEP_S`, 0.5 ms in the package), and prints each
 finding's parameters with their standard errors. The splitting of a sub-step (exact
 linear flow, then implicit friction) is first order, so the parameters move in
 proportion to the step: the difference between the package's step and half of it is
@@ -30,13 +30,13 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     from ewb_ident.data.readers import read_trace
     from ewb_ident.diagnosis.diagnose import diagnose
-    from ewb_ident.model import predict
+    from ewb_ident.model import integrate
 
     trace = read_trace(args.trace)
-    package_step = predict.MAX_SUBSTEP_S
+    package_step = integrate.MAX_SUBSTEP_S
     try:
         for step in (float(s) for s in args.steps.split(",")):
-            predict.MAX_SUBSTEP_S = step
+            integrate.MAX_SUBSTEP_S = step
             result = diagnose(trace).to_json()
             found = "; ".join(
                 f"{f['effect']}: "
@@ -48,7 +48,7 @@ def main() -> None:
             )
             print(f"sub-step {step * 1e3:g} ms: {result['verdict']}; {found}", flush=True)
     finally:
-        predict.MAX_SUBSTEP_S = package_step
+        integrate.MAX_SUBSTEP_S = package_step
 
 
 if __name__ == "__main__":

@@ -892,7 +892,7 @@ class LearnedSpec:
         TermError
             The trace lacks an input the term depends on (e.g. the disc speed).
         """
-        from ewb_ident.model.integrate import simulate_chain
+        from ewb_ident.model.predict import simulate_chain
 
         p = EWBParams(**{k: float(values[k]) for k in MODEL_PARAMS})
         sim = simulate_chain(

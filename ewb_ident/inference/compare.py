@@ -32,9 +32,9 @@ from ewb_ident.data.validation import check_repeats, check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combination_values
 from ewb_ident.inference.least_squares import fit
 from ewb_ident.inference.problem import FitError, default_free
-from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
+from ewb_ident.model.predict import simulate_chain
 
 #: The seed's operating point: its open-loop apply, 4 V for 0.25 s from rest (then 0 V),
 #: logged at 200 Hz; the torque is read while the brake holds, at t = 1.0 s.

@@ -21,7 +21,6 @@ from ewb_ident.data.trace import InputError, Trace, TraceError
 from ewb_ident.inference.initial import motor_lag
 from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
-from ewb_ident.model.physics import brake_torque, clamp_force, gap
 from ewb_ident.model.predict import predict
 from ewb_ident.runtime.programs import on_device, pad_to, padded_length, program
 
@@ -194,20 +193,12 @@ def seed_predictions(p: EWBParams, theta0_deg, d: dict, n_sub: int, method: str)
     the torque the measured force.
 
     One function for every stage, so that a single compiled program serves the chain,
-    the stage fits of its start, and the stage commands. (It is
-    :func:`ewb_ident.model.predict.predict` of the seed model, stage by stage, with the
-    choice of input made by data; ``tests/test_fit.py`` checks that they agree.)
+    the stage fits of its start, and the stage commands: the one evaluator,
+    :func:`ewb_ident.model.predict.predict` of ``"chain"`` without mechanisms, the
+    choice of input made by data (``tests/test_fit.py`` checks that it agrees with the
+    teacher-forced stages).
     """
-    meas, forced = d["meas"], d["forced"]
-    motor = predict("motor", p, theta0_deg, (), d, n_sub, method)
-
-    def pick(ch, measured, simulated):
-        return jnp.where(forced[ch] > 0, measured, simulated)
-
-    x = gap(pick("x_m", meas["theta_deg"], motor["theta_deg"]), p.p2, p.p1, p.p0)
-    F = clamp_force(pick("force_N", meas["x_m"], x), p.F_rt, p.a, p.b, p.c)
-    T = brake_torque(pick("torque_Nm", meas["force_N"], F), p.mu, d["r_eff"])
-    return motor | {"x_m": x, "force_N": F, "torque_Nm": T}
+    return predict("chain", p, theta0_deg, (), d, n_sub, method)
 
 
 @program

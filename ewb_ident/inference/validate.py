@@ -29,9 +29,9 @@ from ewb_ident.data.metrics import SEED_ACCEPTANCE_PCT, channel_metrics, sensor_
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import InputError, Trace, TraceError
 from ewb_ident.data.validation import check_trace
-from ewb_ident.model.integrate import simulate_chain
 from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
+from ewb_ident.model.predict import simulate_chain
 
 #: Residual RMS up to this many times the sensor noise counts as "at the noise floor".
 NOISE_RATIO = 1.5

@@ -1,4 +1,8 @@
-"""Integrating the chain: voltage (zero-order hold) -> motor -> gap -> force -> torque.
+"""The motor integrator: the logged voltage (zero-order hold) -> motor states.
+
+One function, :func:`integrate_motor`, integrates the motor for every evaluation of the
+model (the fits, the posterior, the diagnosis, :func:`ewb_ident.simulate_chain`), and one
+rule, :meth:`Integrator.substeps`, says how many sub-steps each sample interval takes.
 
 Why an exponential integrator
 -----------------------------
@@ -9,18 +13,20 @@ Heun is stable only for ``|1 + z + z^2/2| <= 1`` with ``z = h lambda``, i.e.
 diverges.
 
 The motor is linear in its state and the logged voltage is held constant over each
-sample interval. We therefore integrate it with an exponential integrator (ETD2RK,
-Cox & Matthews 2002): the linear part, stiff electrical pole included, is propagated
-exactly with ``exp(A h)``; a load torque ``tau(state)`` (zero in the seed's baseline,
-the hook for missing physics such as the wedge reaction) enters through the
-``phi_1``/``phi_2`` functions with second-order accuracy. With ``tau = 0`` the result is
-the exact solution of the ODE at the sample times for any sample rate, at the cost of a
-3x3 matrix-vector product per sample. With a load torque, each sample interval is split
-into sub-steps no longer than ``max_substep_s``. ``tests/test_simulate.py`` checks both
-against an independent fine-step reference; ``benchmarks/`` measures the speed.
+sample interval. We therefore propagate it exactly with ``exp(A h)``: the seed's motor
+is the exact solution of the ODE at the sample times for any sample rate, at the cost of
+a 3x3 matrix-vector product per sample. What the seed leaves out enters the motor
+through :class:`MotorTerms` (its insertion points: the voltage the armature sees, a load
+torque, a friction-like torque, and series held per sample). A term that depends on
+the state within a sample splits each sample interval into sub-steps no longer than
+:data:`MAX_SUBSTEP_S`: exact linear flow, a load torque held over the sub-step at the
+trapezoidal mean of its values (second order), then an implicit friction update (first
+order). ``tests/test_simulate.py`` checks the integrator against an independent
+fine-step reference and measures both orders, and why the sub-step is 0.5 ms;
+``benchmarks/`` measures the speed.
 
-Heun at the seed's step is kept (``method="heun"``) to reproduce the paper; it warns
-when the step is unstable for the given parameters.
+Heun at the seed's step is kept (``method="heun"``, the seed's motor only) to reproduce
+the paper; it warns when the step is unstable for the given parameters.
 """
 
 from __future__ import annotations
@@ -29,16 +35,15 @@ import math
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import EWBParams
-from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
+from ewb_ident.model.physics import DEG_PER_RAD, clamp_force, gap, motor_matrices
 from ewb_ident.runtime.programs import program
 
 #: ``tau(state, params) -> N*m``: a load torque on the motor from the state (i, omega,
@@ -52,6 +57,18 @@ class NumericalWarning(UserWarning):
     """A numerical setting that makes results unreliable (e.g. an unstable step)."""
 
 
+#: Longest motor sub-step when a term depends on the state within a sample, s. The
+#: friction update is first order, so its bias falls in proportion to the step: at
+#: 0.5 ms the concealed stiction trace's fitted ``tau_c`` moves by half its standard
+#: error against 0.25 ms, at 1 ms by one (``reports/substep_bias.txt``), and a stiction
+#: motor's angle is within 1 % of the effect of its limit
+#: (``tests/test_simulate.py::test_the_substep_rule_resolves_friction_and_load``).
+MAX_SUBSTEP_S = 5.0e-4
+
+#: Newton steps of the implicit friction update.
+FRICTION_NEWTON_STEPS = 3
+
+
 @dataclass(frozen=True)
 class Integrator:
     """How the motor ODE is integrated between samples.
@@ -59,26 +76,33 @@ class Integrator:
     Parameters
     ----------
     method
-        ``"exponential"`` (default; exact for the linear motor, ETD2RK with a load
-        torque) or ``"heun"`` (the seed paper's explicit method).
+        ``"exponential"`` (default; exact for the seed's motor, sub-steps with terms) or
+        ``"heun"`` (the seed paper's explicit method, for the seed's motor).
     max_substep_s
-        Longest sub-step with a load torque (exponential method), s.
+        Longest sub-step with a term that depends on the state within a sample
+        (exponential method), s; ``None``: :data:`MAX_SUBSTEP_S`.
     heun_step_s
         Step of the Heun method, s (seed: 0.01 s). Rounded so that a whole number of
         steps fills each sample interval; never longer than the interval.
     """
 
     method: Method = "exponential"
-    max_substep_s: float = 1.0e-3
+    max_substep_s: float | None = None
     heun_step_s: float = 0.01
 
-    def substeps(self, dt: float, has_load: bool) -> int:
-        """Number of sub-steps per sample interval ``dt`` (s)."""
+    def substeps(self, dt: float, within_sample: bool) -> int:
+        """Number of sub-steps per sample interval ``dt`` (s): the one sub-step rule.
+
+        ``within_sample``: whether a term depends on the state within a sample
+        (:attr:`MotorTerms.within_sample`); without one the exponential method is exact
+        over the whole interval.
+        """
         if self.method == "heun":
             return max(1, round(dt / self.heun_step_s))
-        if not has_load:
+        if not within_sample:
             return 1
-        return max(1, math.ceil(dt / self.max_substep_s - 1e-9))
+        step = MAX_SUBSTEP_S if self.max_substep_s is None else self.max_substep_s
+        return max(1, math.ceil(dt / step - 1e-9))
 
 
 #: The default integrator, and the seed paper's.
@@ -187,114 +211,172 @@ def _sample_map(A, B_V, h, n_sub: int, method: Method) -> tuple[jnp.ndarray, jnp
     return Fs, gs
 
 
-def seed_motor_states(
+class MotorTerms(NamedTuple):
+    """What enters the motor besides the logged voltage: the motor's insertion points.
+
+    Each is a pure function closing over the parameters it needs (a catalog mechanism's
+    hook, a learned term, a load torque given as a function); ``force`` is the model's
+    clamping force at the state's angle, ``F_bell(gap(theta))``, N.
+
+    Attributes
+    ----------
+    voltage
+        ``V_eff = f(V, s)``: the voltage the armature sees, V (motor electrical).
+    load
+        ``tau = f(s, force)``: a smooth signed load torque, N*m (motor mechanical).
+    friction
+        ``(T, eps) = f(s1, force, start)``: a friction-like torque ``T tanh(omega / eps)``
+        that opposes motion (N*m, rad/s; ``s1`` the state after a sub-step's linear flow,
+        ``start`` the state at its start), integrated implicitly.
+    series
+        A voltage (V) added to the logged one and a load torque (N*m), per sample, each
+        held over its sample; ``None`` for none.
+    """
+
+    voltage: tuple[Callable, ...] = ()
+    load: tuple[Callable, ...] = ()
+    friction: tuple[Callable, ...] = ()
+    series: tuple[jnp.ndarray, jnp.ndarray] | None = None
+
+    @property
+    def within_sample(self) -> bool:
+        """Whether a term depends on the state within a sample (so the motor needs
+        sub-steps, :meth:`Integrator.substeps`)."""
+        return bool(self.voltage or self.load or self.friction)
+
+    @property
+    def empty(self) -> bool:
+        """No term at all: the seed's linear motor."""
+        return not self.within_sample and self.series is None
+
+
+#: The seed's motor: no term.
+NO_TERMS = MotorTerms()
+
+
+def integrate_motor(
     params: EWBParams,
     voltage_V: jnp.ndarray,
     dt: ArrayLike,
     theta0_deg: ArrayLike,
     n_sub: int,
-    method: Method,
-    load_torque: LoadTorque | None,
+    method: Method = "exponential",
+    terms: MotorTerms | None = None,
 ) -> jnp.ndarray:
-    """Motor states (i, omega, theta[rad]) at the sample times, shape (n, 3).
+    """The motor integrator: states (i [A], omega [rad/s], theta [rad]) at the sample
+    times, shape (n, 3), from rest at ``theta0_deg``.
 
-    Without a load torque the motor is the linear recurrence ``s[k+1] = F s[k] + g V[k]``
-    (``F``, ``g`` exact over the interval). With a load torque: ETD2RK (or Heun) sub-steps.
+    Without terms the motor is the linear recurrence ``s[k+1] = F s[k] + g V[k]``: ``F``,
+    ``g`` exact over the interval for the ``exponential`` method, ``n_sub`` Heun steps
+    for ``heun`` (the seed paper's integrator). With terms (exponential method only),
+    ``n_sub`` sub-steps per sample, each the exact linear flow with the voltage the
+    ``voltage`` terms let through and the held ``series``, a load torque held over the
+    sub-step at the mean of its values at the start and where that leads (trapezoidal,
+    second order), then an implicit (backward Euler) step of the friction-like torques,
+    each ``T tanh(omega / eps)`` (a torque ``T`` that opposes motion, switching over a
+    speed scale ``eps``): with ``omega_free`` the speed after the linear flow, ``omega``
+    solves ``omega = omega_free - (h / M) sum T tanh(omega / eps)``. It starts from the
+    Coulomb limit (``eps -> 0``, Moreau's time-stepping scheme: stuck, ``omega = 0``,
+    when ``|omega_free| <= h sum T / M``) and takes :data:`FRICTION_NEWTON_STEPS` Newton
+    steps, so a stiff, nearly set-valued friction is integrated stably and stays
+    differentiable for the fit; an actuator held by friction stays still. The splitting
+    is first order in ``h``.
+
+    Raises
+    ------
+    ValueError
+        ``method="heun"`` with terms: the seed's Heun integrates only the seed's motor.
     """
+    terms = NO_TERMS if terms is None else terms
     A, B_V, B_tau = motor_matrices(params.R, params.L, params.kb, params.kT, params.M, params.v)
     dtype = A.dtype
-    V = jnp.asarray(voltage_V, dtype=dtype)
-    s0 = jnp.array([0.0, 0.0, 0.0], dtype=dtype).at[2].set(theta0_deg / DEG_PER_RAD)
-    h = dt / n_sub
-
-    if load_torque is None:
-        F, g = _sample_map(A, B_V, h, n_sub, method)
+    s0 = jnp.zeros(3, dtype=dtype).at[2].set(theta0_deg / DEG_PER_RAD)
+    if terms.empty:
+        n_seed = n_sub if method == "heun" else 1  # exact over a sample: one step
+        F, g = _sample_map(A, B_V, dt / n_seed, n_seed, method)
 
         def linear_step(s, V):
             return matvec(F, s) + g * V, s
 
-        return jax.lax.scan(linear_step, s0, V)[1]
-
-    def tau(s):
-        return load_torque(s, params)
-
+        return jax.lax.scan(linear_step, s0, jnp.asarray(voltage_V, dtype=dtype))[1]
     if method == "heun":
+        raise ValueError(
+            "the seed's Heun method integrates only the seed's motor, without load "
+            "torques, friction or added voltages; use method='exponential'"
+        )
+    p = params
+    h = dt / n_sub
+    E, P1, _ = phi_matrices(A, h)
+    g = matvec(P1, B_V)
+    g_tau = matvec(P1, B_tau)  # exact response to a load torque held over the sub-step
 
-        def rhs(s, V):
-            return matvec(A, s) + B_V * V + B_tau * tau(s)
+    def force_of(theta_rad):
+        x = gap(theta_rad * DEG_PER_RAD, p.p2, p.p1, p.p0)
+        return clamp_force(x, p.F_rt, p.a, p.b, p.c)
 
-        def substep(s, V):
-            k1 = rhs(s, V)
-            k2 = rhs(s + h * k1, V)
-            return s + 0.5 * h * (k1 + k2)
+    def substep(s, V, tau_ext):
+        v_eff = V
+        for f in terms.voltage:
+            v_eff = f(v_eff, s)
+        s1 = matvec(E, s) + g * v_eff + g_tau * tau_ext
+        if terms.load:
+            # The load torque as an input held over the sub-step (exact for a constant
+            # one), trapezoidal in its value: at the start, then the mean with its value
+            # where that leads (Heun).
+            def loaded(tau):
+                return s1 + g_tau * tau
 
-    else:
-        E, P1, P2 = phi_matrices(A, h)
+            tau0 = sum(f(s, force_of(s[2])) for f in terms.load)
+            ahead = loaded(tau0)
+            tau1 = sum(f(ahead, force_of(ahead[2])) for f in terms.load)
+            s1 = loaded(0.5 * (tau0 + tau1))
+        if terms.friction:
+            force = force_of(s1[2])
+            parts = [f(s1, force, s) for f in terms.friction]
+            w = s1[1]
+            k = h / p.M
+            total = sum(t for t, _ in parts)
+            # Start from the Coulomb (Moreau) solution, the limit of vanishing scales ...
+            stuck = jnp.abs(w) <= k * total
+            v = jnp.where(stuck, 0.0, w - k * total * jnp.sign(w))
+            lo, hi = jnp.minimum(w, 0.0), jnp.maximum(w, 0.0)
+            # ... then Newton on v - w + k sum T tanh(v / eps) = 0 (monotone; the root lies
+            # between 0 and w since friction only opposes motion).
+            for _ in range(FRICTION_NEWTON_STEPS):
+                th = [jnp.tanh(v / eps) for _, eps in parts]
+                res = v - w + k * sum(t * a for (t, _), a in zip(parts, th, strict=True))
+                dres = 1.0 + k * sum(
+                    t / eps * (1.0 - a * a) for (t, eps), a in zip(parts, th, strict=True)
+                )
+                v = jnp.clip(v - res / dres, lo, hi)
+            theta = jnp.where(stuck & (jnp.abs(v) < 1e-12), s[2], s1[2] + 0.5 * h * (v - w))
+            s1 = s1.at[1].set(v).at[2].set(theta)
+        return s1
 
-        def substep(s, V):
-            N0 = B_V * V + B_tau * tau(s)
-            a = matvec(E, s) + matvec(P1, N0)
-            return a + matvec(P2, B_tau * (tau(a) - tau(s)))
+    def sample(s, xs):
+        V, dv, tau_ext = xs
 
-    def step(s, V):
-        return jax.lax.fori_loop(0, n_sub, lambda _, s: substep(s, V), s), s
+        def sub(c, _):
+            return substep(c, V + dv, tau_ext), None
 
-    _, states = jax.lax.scan(step, s0, V)
-    return states
+        s_next = jax.lax.scan(sub, s, None, length=n_sub)[0]
+        return s_next, s
+
+    volts = jnp.asarray(voltage_V, dtype=dtype)
+    dv, dtau = (jnp.zeros_like(volts),) * 2 if terms.series is None else terms.series
+    xs = (volts, jnp.broadcast_to(dv, volts.shape), jnp.broadcast_to(dtau, volts.shape))
+    return jax.lax.scan(sample, s0, xs)[1]
 
 
 @program
 def motor_angle_rad(params: EWBParams, voltage_V, dt, theta0_deg) -> jnp.ndarray:
     """Pinion angle (rad) at the sample times from the logged voltage (V, zero-order
     hold, interval ``dt`` s), exact over each interval, from rest at ``theta0_deg``."""
-    return seed_motor_states(params, voltage_V, dt, theta0_deg, 1, "exponential", None)[:, 2]
+    return integrate_motor(params, voltage_V, dt, theta0_deg, 1)[:, 2]
 
 
-@numerics
-def simulate_motor(
-    params: EWBParams,
-    voltage_V: ArrayLike,
-    dt: float,
-    theta0_deg: ArrayLike = 0.0,
-    *,
-    integrator: Integrator = EXPONENTIAL,
-    load_torque: LoadTorque | None = None,
-) -> dict[str, jnp.ndarray]:
-    """Motor stage: logged voltage -> current and pinion angle at the sample times.
-
-    Parameters
-    ----------
-    params
-        Model parameters (the motor ones are used).
-    voltage_V
-        Voltage at each sample, V, held until the next sample (zero-order hold).
-    dt
-        Sample interval, s.
-    theta0_deg
-        Pinion angle at the first sample, degrees (the motor starts at rest).
-    integrator
-        Integration method (see :class:`Integrator`).
-    load_torque
-        Optional load torque ``tau(state, params)``, N*m.
-
-    Returns
-    -------
-    dict with ``current_A`` (A), ``omega_rad_s`` (rad/s) and ``theta_deg`` (degrees).
-    """
-    n_sub = integrator.substeps(float(dt), load_torque is not None)
-    if integrator.method == "heun":
-        _warn_if_heun_unstable(params, float(dt) / n_sub)
-    states = seed_motor_states(
-        params, jnp.asarray(voltage_V), dt, theta0_deg, n_sub, integrator.method, load_torque
-    )
-    return {
-        "current_A": states[:, 0],
-        "omega_rad_s": states[:, 1],
-        "theta_deg": states[:, 2] * DEG_PER_RAD,
-    }
-
-
-def _warn_if_heun_unstable(params: EWBParams, h: float) -> None:
+def warn_if_heun_unstable(params: EWBParams, h: float) -> None:
+    """Warn (:class:`NumericalWarning`) when Heun's step ``h`` (s) diverges on this motor."""
     try:
         rho = heun_amplification(params, h)
     except jax.errors.ConcretizationTypeError:  # traced parameters: checked by the caller
@@ -306,61 +388,8 @@ def _warn_if_heun_unstable(params: EWBParams, h: float) -> None:
             f"{rho:.3g} > 1): the simulation diverges. Use the default exponential "
             "integrator, or h < 2 L/R.",
             NumericalWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
-
-
-def chain_from_theta(
-    params: EWBParams, theta_deg: ArrayLike, r_eff_m: ArrayLike
-) -> dict[str, jnp.ndarray]:
-    """Gap, force and torque stages from a pinion angle (measured or simulated).
-
-    Returns
-    -------
-    dict with ``x_m`` (m), ``force_N`` (N) and ``torque_Nm`` (N*m).
-    """
-    x = gap(theta_deg, params.p2, params.p1, params.p0)
-    F = clamp_force(x, params.F_rt, params.a, params.b, params.c)
-    return {"x_m": x, "force_N": F, "torque_Nm": brake_torque(F, params.mu, r_eff_m)}
-
-
-@numerics
-def simulate_chain(
-    params: EWBParams,
-    voltage_V: ArrayLike,
-    dt: float,
-    theta0_deg: ArrayLike = 0.0,
-    r_eff_m: ArrayLike = 0.15,
-    *,
-    integrator: Integrator = EXPONENTIAL,
-    load_torque: LoadTorque | None = None,
-) -> dict[str, jnp.ndarray]:
-    """The whole chain from the logged voltage alone.
-
-    Parameters
-    ----------
-    params
-        Model parameters.
-    voltage_V
-        Voltage at each sample, V (zero-order hold).
-    dt
-        Sample interval, s.
-    theta0_deg
-        Pinion angle at the first sample, degrees.
-    r_eff_m
-        Effective pad radius, m.
-    integrator, load_torque
-        As for :func:`simulate_motor`.
-
-    Returns
-    -------
-    dict with ``current_A``, ``omega_rad_s``, ``theta_deg``, ``x_m``, ``force_N`` and
-    ``torque_Nm`` at the sample times (SI units, angle in degrees).
-    """
-    motor = simulate_motor(
-        params, voltage_V, dt, theta0_deg, integrator=integrator, load_torque=load_torque
-    )
-    return motor | chain_from_theta(params, motor["theta_deg"], r_eff_m)
 
 
 #: Longest sub-step of the motor states resolved within each sample interval, s.

@@ -8,52 +8,109 @@ it gives exactly the seed model of :mod:`ewb_ident.model.physics` /
 
 The motor with mechanisms
 -------------------------
-:func:`motor_states` splits each sub-step (at most :data:`MAX_SUBSTEP_S`) into the
-exact linear flow of the armature and rotor (``exp(A h)``, as in
-:mod:`ewb_ident.model.integrate`) with the voltage the ``voltage`` hooks let through, followed
-by an implicit (backward Euler) step of the friction-like torques of the
-``motor_friction`` hooks, each ``T tanh(omega / eps)`` (a torque ``T`` that opposes
-motion, switching over a speed scale ``eps``): with ``omega_free`` the speed after the
-linear flow, ``omega`` solves ``omega = omega_free - (h / M) sum T tanh(omega / eps)``.
-It starts from the Coulomb limit (``eps -> 0``, Moreau's time-stepping scheme: stuck,
-``omega = 0``, when ``|omega_free| <= h sum T / M``) and takes a few Newton steps, so a
-stiff, nearly set-valued friction is integrated stably and stays differentiable for the
-fit; an actuator held by friction stays still. The splitting is first order in ``h``.
-The model clamping force a wedge load needs is ``F_bell(gap(theta))`` at the
-state's angle.
+:func:`motor_states` hands the mechanisms' motor hooks (``voltage``, ``load_torque``,
+``motor_friction``, ``voltage_series``, ``load_series``) to the one integrator,
+:func:`ewb_ident.model.integrate.integrate_motor`, as its terms; :func:`n_substeps` is
+the one sub-step rule for them. :func:`simulate_chain` and :func:`simulate_motor` are
+:func:`predict` from the voltage alone.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
-from ewb_ident.model.integrate import matvec, phi_matrices, seed_motor_states
+from ewb_ident.model.integrate import (
+    EXPONENTIAL,
+    Integrator,
+    LoadTorque,
+    MotorTerms,
+    integrate_motor,
+    warn_if_heun_unstable,
+)
+from ewb_ident.model.numerics import numerics
 from ewb_ident.model.params import EWBParams
-from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap, motor_matrices
+from ewb_ident.model.physics import DEG_PER_RAD, brake_torque, clamp_force, gap
 
 if TYPE_CHECKING:  # the mechanisms implement hooks this module calls
     from ewb_ident.mechanisms.base import AbstractMechanism
 
-#: Longest sub-step of the motor integration with mechanisms, s.
-MAX_SUBSTEP_S = 5.0e-4
+#: The evaluator's insertion points, in the order of the chain: each place where physics
+#: can enter, with the hooks (:mod:`ewb_ident.mechanisms.base`) through which a catalog
+#: mechanism, a function given to :func:`simulate_chain` or a learned term
+#: (:data:`ewb_ident.mechanisms.learned.PLACES`) acts there. ``output:<stage>`` is the
+#: ``output`` hook at that stage (an additive correction of its output). The sensors are
+#: one place per channel, ``sensor.<channel>``. docs/model.md has the table in words.
+INSERTION_POINTS: dict[str, tuple[str, ...]] = {
+    "motor.electrical": ("voltage", "voltage_series"),
+    "motor.mechanical": ("load_torque", "motor_friction", "load_series"),
+    "gap": ("wedge_angle",),
+    "drive": ("output:gap",),
+    "force.input": ("force_input",),
+    "force.output": ("clamp_force", "output:force"),
+    "friction": ("friction_coefficient",),
+    "torque.output": ("output:torque",),
+    "sensor": ("sensor",),
+}
 
-#: Newton steps of the implicit friction update.
-FRICTION_NEWTON_STEPS = 3
-
-#: Hooks that act inside the motor integration.
+#: Hooks that act inside the motor integration, within each sample (the integrator's
+#: ``voltage``, ``load`` and ``friction`` terms).
 MOTOR_HOOKS: tuple[str, ...] = ("voltage", "motor_friction", "load_torque")
 
 
+def insertion_points(mechanism: AbstractMechanism) -> tuple[str, ...]:
+    """The insertion points (keys of :data:`INSERTION_POINTS`, a sensor's as
+    ``sensor.<channel>`` when it names one) at which a mechanism acts."""
+    out = []
+    for place, hooks in INSERTION_POINTS.items():
+        for spec in hooks:
+            hook, _, stage = spec.partition(":")
+            if mechanism.uses(hook) and (not stage or mechanism.stage == stage):
+                channel = getattr(mechanism, "channel", None)
+                out.append(f"sensor.{channel}" if place == "sensor" and channel else place)
+                break
+    return tuple(out)
+
+
 def n_substeps(dt: float, mechanisms: Sequence[AbstractMechanism]) -> int:
-    """Motor sub-steps per sample interval ``dt`` (s) for these mechanisms."""
-    if not any(m.uses(h) for m in mechanisms for h in MOTOR_HOOKS):
-        return 1
-    return max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
+    """Motor sub-steps per sample interval ``dt`` (s) for these mechanisms (the one rule,
+    :meth:`ewb_ident.model.integrate.Integrator.substeps`)."""
+    within = any(m.uses(h) for m in mechanisms for h in MOTOR_HOOKS)
+    return EXPONENTIAL.substeps(dt, within)
+
+
+def motor_terms(
+    p: EWBParams,
+    mechanisms: Sequence[AbstractMechanism],
+    series: tuple[jnp.ndarray, jnp.ndarray] | None = None,
+) -> MotorTerms:
+    """The mechanisms' motor hooks as the integrator's terms, at parameters ``p``."""
+    return MotorTerms(
+        voltage=tuple(partial(_voltage_hook, m, p) for m in mechanisms if m.uses("voltage")),
+        load=tuple(partial(_load_hook, m, p) for m in mechanisms if m.uses("load_torque")),
+        friction=tuple(
+            partial(_friction_hook, m, p) for m in mechanisms if m.uses("motor_friction")
+        ),
+        series=series,
+    )
+
+
+def _voltage_hook(m, p, V, s):
+    return m.voltage(V, s, p)
+
+
+def _load_hook(m, p, s, force):
+    return m.load_torque(s, p, force)
+
+
+def _friction_hook(m, p, s1, force, start):
+    return m.motor_friction(s1, p, force, start=start)
 
 
 def motor_states(
@@ -66,84 +123,19 @@ def motor_states(
     method: str = "exponential",
     series: tuple[jnp.ndarray, jnp.ndarray] | None = None,
 ) -> jnp.ndarray:
-    """Motor states (i [A], omega [rad/s], theta [rad]) at the sample times, shape (n, 3).
+    """Motor states (i [A], omega [rad/s], theta [rad]) at the sample times, shape (n, 3):
+    :func:`ewb_ident.model.integrate.integrate_motor` with the mechanisms' motor hooks.
 
-    Without motor mechanisms this is :func:`ewb_ident.model.integrate.seed_motor_states`:
-    exact over each sample for the ``exponential`` method, ``n_sub`` Heun sub-steps for
-    ``heun`` (the seed paper's integrator). ``series``: a voltage (V) added to the
-    logged one and a load torque (N*m), per sample, each held over its sample
-    (the ``voltage_series`` and ``load_series`` hooks); both enter the linear flow
-    exactly.
+    Without motor mechanisms: exact over each sample for the ``exponential`` method,
+    ``n_sub`` Heun sub-steps for ``heun`` (the seed paper's integrator; with motor
+    mechanisms the method is the exponential one). ``series``: a voltage (V) added to
+    the logged one and a load torque (N*m), per sample, each held over its sample (the
+    ``voltage_series`` and ``load_series`` hooks); both enter the linear flow exactly.
     """
-    volt = [m for m in mechanisms if m.uses("voltage")]
-    fric = [m for m in mechanisms if m.uses("motor_friction")]
-    load = [m for m in mechanisms if m.uses("load_torque")]
-    if not volt and not fric and not load and series is None:
-        n_seed = n_sub if method == "heun" else 1
-        return seed_motor_states(p, voltage_V, dt, theta0_deg, n_seed, method, None)
-    A, B_V, B_tau = motor_matrices(p.R, p.L, p.kb, p.kT, p.M, p.v)
-    h = dt / n_sub
-    E, P1, _ = phi_matrices(A, h)
-    g = matvec(P1, B_V)
-    g_tau = matvec(P1, B_tau)  # exact response to a load torque held over the sub-step
-    s0 = jnp.zeros(3, dtype=A.dtype).at[2].set(theta0_deg / DEG_PER_RAD)
-
-    def force_of(theta_rad):
-        x = gap(theta_rad * DEG_PER_RAD, p.p2, p.p1, p.p0)
-        return clamp_force(x, p.F_rt, p.a, p.b, p.c)
-
-    def substep(s, V, tau_ext):
-        v_eff = V
-        for m in volt:
-            v_eff = m.voltage(v_eff, s, p)
-        s1 = matvec(E, s) + g * v_eff + g_tau * tau_ext
-        if load:
-            # The load torque as an input held over the sub-step (exact for a constant
-            # one), trapezoidal in its value: at the start, then the mean with its value
-            # where that leads (Heun).
-            def loaded(tau):
-                return s1 + g_tau * tau
-
-            tau0 = sum(m.load_torque(s, p, force_of(s[2])) for m in load)
-            ahead = loaded(tau0)
-            tau1 = sum(m.load_torque(ahead, p, force_of(ahead[2])) for m in load)
-            s1 = loaded(0.5 * (tau0 + tau1))
-        if fric:
-            force = force_of(s1[2])
-            terms = [m.motor_friction(s1, p, force, start=s) for m in fric]
-            w = s1[1]
-            k = h / p.M
-            total = sum(t for t, _ in terms)
-            # Start from the Coulomb (Moreau) solution, the limit of vanishing scales ...
-            stuck = jnp.abs(w) <= k * total
-            v = jnp.where(stuck, 0.0, w - k * total * jnp.sign(w))
-            lo, hi = jnp.minimum(w, 0.0), jnp.maximum(w, 0.0)
-            # ... then Newton on v - w + k sum T tanh(v / eps) = 0 (monotone; the root lies
-            # between 0 and w since friction only opposes motion).
-            for _ in range(FRICTION_NEWTON_STEPS):
-                th = [jnp.tanh(v / eps) for _, eps in terms]
-                res = v - w + k * sum(t * a for (t, _), a in zip(terms, th, strict=True))
-                dres = 1.0 + k * sum(
-                    t / eps * (1.0 - a * a) for (t, eps), a in zip(terms, th, strict=True)
-                )
-                v = jnp.clip(v - res / dres, lo, hi)
-            theta = jnp.where(stuck & (jnp.abs(v) < 1e-12), s[2], s1[2] + 0.5 * h * (v - w))
-            s1 = s1.at[1].set(v).at[2].set(theta)
-        return s1
-
-    def sample(s, xs):
-        V, dv, tau_ext = xs
-
-        def sub(c, _):
-            return substep(c, V + dv, tau_ext), None
-
-        s_next = jax.lax.scan(sub, s, None, length=n_sub)[0]
-        return s_next, s
-
-    volts = jnp.asarray(voltage_V, dtype=A.dtype)
-    dv, dtau = (jnp.zeros_like(volts),) * 2 if series is None else series
-    xs = (volts, jnp.broadcast_to(dv, volts.shape), jnp.broadcast_to(dtau, volts.shape))
-    return jax.lax.scan(sample, s0, xs)[1]
+    terms = motor_terms(p, mechanisms, series)
+    if not terms.empty:
+        method = "exponential"
+    return integrate_motor(p, voltage_V, dt, theta0_deg, n_sub, method, terms)
 
 
 def play(y: jnp.ndarray, width: jnp.ndarray) -> jnp.ndarray:
@@ -178,10 +170,12 @@ def predict(
     d: Mapping[str, Any],
     n_sub: int,
     method: str = "exponential",
+    *,
+    speed: bool = False,
 ) -> dict[str, jnp.ndarray]:
     """Predicted channels of one or several teacher-forced stages, or of ``"chain"``: the
     one evaluator of the chain, with or without mechanisms, for least squares, the
-    posterior and the diagnosis.
+    posterior, the diagnosis and :func:`simulate_chain`.
 
     Parameters
     ----------
@@ -194,18 +188,24 @@ def predict(
     d
         Data: ``meas`` (measured columns), ``dt`` (s), ``t`` (s), ``r_eff`` (m),
         ``omega_ref`` (rad/s), ``x_play`` (m; half width of the play filter on the
-        measured displacement that drives a hysteresis state).
+        measured displacement that drives a hysteresis state); optionally ``forced``
+        (for ``"chain"``: per output channel ``x_m``, ``force_N``, ``torque_Nm``, a flag
+        that, where above 0, makes the stage read its measured input instead of the
+        simulated one, so that one compiled program serves the chain and each
+        teacher-forced stage, the choice made by data).
     n_sub
         Motor sub-steps per sample (:func:`n_substeps`; for the seed model with the
         ``heun`` method, :meth:`ewb_ident.model.integrate.Integrator.substeps`).
     method
         ``exponential`` (exact over each sample) or ``heun`` (the seed paper's), for the
         motor without motor mechanisms.
+    speed
+        Also return the motor's speed, ``omega_rad_s`` (rad/s; motor and chain).
     """
     if not isinstance(stages, str):
         out: dict[str, jnp.ndarray] = {}
         for s in stages:
-            out |= predict(s, p, theta0_deg, mechanisms, d, n_sub, method)
+            out |= predict(s, p, theta0_deg, mechanisms, d, n_sub, method, speed=speed)
         return out
     stage = stages
     meas = d["meas"]
@@ -220,8 +220,11 @@ def predict(
         theta = s[:, 2] * DEG_PER_RAD
         out["theta_deg"] = sensors.read("theta_deg", theta)
         out["current_A"] = sensors.read("current_A", s[:, 0])
+        if speed:
+            out["omega_rad_s"] = s[:, 1]
         if stage == "motor":
             return out
+        theta = _forced(d, "x_m", lambda: sensors.unread("theta_deg", meas["theta_deg"]), theta)
     elif stage == "gap":
         theta = sensors.unread("theta_deg", meas["theta_deg"])
 
@@ -230,6 +233,7 @@ def predict(
         out["x_m"] = sensors.read("x_m", x)
         if stage == "gap":
             return out
+        x = _forced(d, "force_N", lambda: sensors.unread("x_m", meas["x_m"]), x)
         x_drive = x
     elif stage == "force":
         x = sensors.unread("x_m", meas["x_m"])
@@ -240,10 +244,20 @@ def predict(
         out["force_N"] = sensors.read("force_N", F)
         if stage == "force":
             return out
+        F = _forced(d, "torque_Nm", lambda: sensors.unread("force_N", meas["force_N"]), F)
     else:  # torque stage
         F = sensors.unread("force_N", meas["force_N"])
     out["torque_Nm"] = sensors.read("torque_Nm", _torque(F, p, mechanisms, d, ctx))
     return out
+
+
+def _forced(d: Mapping[str, Any], ch: str, measured, simulated: jnp.ndarray) -> jnp.ndarray:
+    """The input of the stage that predicts ``ch`` on the chain: the measured one
+    (``measured()``) where ``d["forced"][ch]`` is above 0, else the simulated one."""
+    forced = d.get("forced")
+    if forced is None:
+        return simulated
+    return jnp.where(forced[ch] > 0, measured(), simulated)
 
 
 def _motor_series(mechanisms, ctx) -> tuple[jnp.ndarray, jnp.ndarray] | None:
@@ -341,3 +355,99 @@ def _correct(stage: str, y, mechanisms, signals) -> jnp.ndarray:
         if m.uses("output") and m.stage == stage:
             y = y + m.correction(signals | {"y": y})
     return y
+
+
+# ----------------------------------------------------------------------- simulation
+
+
+@dataclass(frozen=True)
+class LoadTorqueFunction:
+    """A load torque given as a function ``tau(state, params)`` (N*m; the state (i,
+    omega, theta [rad])), plugged into the ``load_torque`` hook of the motor."""
+
+    tau: LoadTorque
+    stage: str = "motor"
+
+    def uses(self, hook: str) -> bool:
+        return hook == "load_torque"
+
+    def load_torque(self, s: jnp.ndarray, p: EWBParams, force: jnp.ndarray) -> jnp.ndarray:
+        return self.tau(s, p)
+
+
+def _simulate(params, voltage_V, dt, theta0_deg, r_eff_m, stage, integrator, load_torque):
+    """:func:`predict` of ``stage`` from the voltage alone, with the motor's speed."""
+    mechanisms = () if load_torque is None else (LoadTorqueFunction(load_torque),)
+    n_sub = integrator.substeps(float(dt), bool(mechanisms))
+    if integrator.method == "heun":
+        warn_if_heun_unstable(params, float(dt) / n_sub)
+    d = {"meas": {"voltage_V": jnp.asarray(voltage_V)}, "dt": dt, "r_eff": r_eff_m}
+    out = predict(stage, params, theta0_deg, mechanisms, d, n_sub, integrator.method, speed=True)
+    return {k: out[k] for k in ("current_A", "omega_rad_s", "theta_deg")} | out
+
+
+@numerics
+def simulate_motor(
+    params: EWBParams,
+    voltage_V: ArrayLike,
+    dt: float,
+    theta0_deg: ArrayLike = 0.0,
+    *,
+    integrator: Integrator = EXPONENTIAL,
+    load_torque: LoadTorque | None = None,
+) -> dict[str, jnp.ndarray]:
+    """Motor stage: logged voltage -> current and pinion angle at the sample times.
+
+    Parameters
+    ----------
+    params
+        Model parameters (the motor ones are used).
+    voltage_V
+        Voltage at each sample, V, held until the next sample (zero-order hold).
+    dt
+        Sample interval, s.
+    theta0_deg
+        Pinion angle at the first sample, degrees (the motor starts at rest).
+    integrator
+        Integration method (see :class:`ewb_ident.model.integrate.Integrator`).
+    load_torque
+        Optional load torque ``tau(state, params)``, N*m (exponential method only).
+
+    Returns
+    -------
+    dict with ``current_A`` (A), ``omega_rad_s`` (rad/s) and ``theta_deg`` (degrees).
+
+    Raises
+    ------
+    ValueError
+        A load torque with the ``heun`` method.
+    """
+    return _simulate(params, voltage_V, dt, theta0_deg, None, "motor", integrator, load_torque)
+
+
+@numerics
+def simulate_chain(
+    params: EWBParams,
+    voltage_V: ArrayLike,
+    dt: float,
+    theta0_deg: ArrayLike = 0.0,
+    r_eff_m: ArrayLike = 0.15,
+    *,
+    integrator: Integrator = EXPONENTIAL,
+    load_torque: LoadTorque | None = None,
+) -> dict[str, jnp.ndarray]:
+    """The whole chain from the logged voltage alone: :func:`predict` of ``"chain"``.
+
+    Parameters
+    ----------
+    r_eff_m
+        Effective pad radius, m.
+    params, voltage_V, dt, theta0_deg, integrator, load_torque
+        As for :func:`simulate_motor` (all model parameters are used).
+
+    Returns
+    -------
+    dict with ``current_A``, ``omega_rad_s``, ``theta_deg``, ``x_m``, ``force_N`` and
+    ``torque_Nm`` at the sample times (SI units, angle in degrees).
+    """
+    return _simulate(params, voltage_V, dt, theta0_deg, r_eff_m, "chain", integrator, load_torque)
