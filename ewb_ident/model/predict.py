@@ -377,6 +377,11 @@ class LoadTorqueFunction:
 
 def _simulate(params, voltage_V, dt, theta0_deg, r_eff_m, stage, integrator, load_torque):
     """:func:`predict` of ``stage`` from the voltage alone, with the motor's speed."""
+    if load_torque is not None and integrator.method == "heun":
+        raise ValueError(
+            "the seed's Heun method integrates only the seed's motor, without load torque: "
+            "use the exponential integrator for a load torque"
+        )
     mechanisms = () if load_torque is None else (LoadTorqueFunction(load_torque),)
     n_sub = integrator.substeps(float(dt), bool(mechanisms))
     if integrator.method == "heun":
