@@ -281,17 +281,32 @@ def fit(
 
 
 @numerics
-def fit_checked_traces(trace: Trace, *, stage: Stage) -> FitResult:
+def fit_checked_traces(
+    trace: Trace, *, stage: Stage, start: dict[str, float] | None = None
+) -> FitResult:
     """:func:`fit` of one stage, with its defaults, of a trace its caller has checked
     (the diagnosis's baseline fits of every stage the trace's columns serve, whether or
-    not its force clamps)."""
-    return _fit((trace,), stage, None, None, None, None, EXPONENTIAL, 300, 1e-8)
+    not its force clamps), from ``start`` if given (of :func:`start_of_checked_trace`)."""
+    return _fit((trace,), stage, None, None, None, None, EXPONENTIAL, 300, 1e-8, start)
 
 
-def _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol) -> FitResult:
-    """:func:`fit` of checked traces and options (the sub-fits of its start call this)."""
+def start_of_checked_trace(trace: Trace, *, stage: Stage) -> dict[str, float]:
+    """The start values :func:`fit_checked_traces` would begin from, or at once the
+    :class:`FitError` it would raise for data that put one outside its bounds (x logged
+    in mm let through by --no-unit-check, a channel reversed in time)."""
+    setup = build_setup((trace,), stage, None, None, None, EXPONENTIAL)
+    return _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
+
+
+def _fit(
+    traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol, computed=None
+) -> FitResult:
+    """:func:`fit` of checked traces and options (the sub-fits of its start call this);
+    ``computed``: the data's start values, if already computed."""
     setup = build_setup(traces, stage, free, per_trace, fixed, integrator)
-    st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
+    st = computed
+    if st is None:
+        st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
     st = {k: v for k, v in st.items() if usable(k.split("[")[0], v)}
     st |= dict(start or {})
     # No null direction reaches the solver: at the start, a combination of free
