@@ -396,6 +396,39 @@ def test_sample_settings_that_cannot_fit_in_memory_are_refused(rig, tmp_path, op
     assert re.search(message, line), line
 
 
+def test_a_fit_the_machine_cannot_hold_is_refused_with_its_estimate(
+    rig, rig_trace, tmp_path, monkeypatch
+):
+    """Was: the largest accepted trace (600,000 samples) fitted with an 8 GB peak, and a
+    machine with less memory ended in an out-of-memory error."""
+    import ewb_ident.inference.memory as memory
+    from ewb_ident.inference.problem import FitError
+
+    monkeypatch.setattr(memory, "physical_memory", lambda: 0.25e9)
+    message = (
+        r"a chain fit of \d+ samples needs about 0\.30\d GB, more than this machine's 0\.25 GB;"
+        r" fit a shorter excerpt, or a teacher-forced stage \(--stage force needs about 0\.3"
+    )
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(rig), "--out", str(out)]), out)
+    assert re.search(message, line), line
+    with pytest.raises(FitError, match=message):
+        ei.fit(rig_trace)
+
+
+@pytest.mark.parametrize(
+    ("samples", "stage", "peak_gb"),
+    [(150_000, "chain", 2.23), (300_000, "chain", 4.16), (600_000, "chain", 8.11),
+     (600_000, "force", 1.32), (600_000, "torque", 1.33)],
+)  # fmt: skip
+def test_the_fit_memory_estimate_covers_the_measured_peaks(samples, stage, peak_gb):
+    """Peak resident memory of ``ewb-ident fit`` on a 1 kHz position trace: the
+    estimate is above it, by at most a fifth."""
+    from ewb_ident.inference.memory import fit_memory_bytes
+
+    assert peak_gb <= fit_memory_bytes(samples, stage) / 1e9 <= 1.2 * peak_gb
+
+
 def test_simulate_refuses_a_negative_seed(tmp_path):
     out = tmp_path / "t.csv"
     argv = ["simulate", str(out), "--seed", "-1", "--vary", "0.1"]

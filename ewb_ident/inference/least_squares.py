@@ -41,6 +41,7 @@ from ewb_ident.data.trace import Trace
 from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combinations
 from ewb_ident.inference.initial import bell_start, motor_start
+from ewb_ident.inference.memory import check_fit_memory
 from ewb_ident.inference.null_directions import hold_flank_exponent, hold_null_directions, hold_one
 from ewb_ident.inference.problem import (
     FitError,
@@ -267,7 +268,8 @@ def fit(
     Raises
     ------
     FitError
-        Unknown stage or parameter; start values the data put outside their bounds.
+        Unknown stage or parameter; start values the data put outside their bounds;
+        traces longer than the machine's memory can fit (its estimate).
     TraceError
         A trace that fails :func:`~ewb_ident.data.validation.check_traces` (the
         command line's checks), or lacks a column the stage needs.
@@ -277,6 +279,7 @@ def fit(
     """
     traces = check_traces(traces, stages=(stage,) if stage in STAGES else None)
     free, per_trace, fixed, start = check_parameter_options(free, per_trace, fixed, start)
+    check_fit_memory(traces, stage)
     return _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol)
 
 
