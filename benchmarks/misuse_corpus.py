@@ -78,6 +78,17 @@ def _scale(col: str, k: float, from_row: int = 1):
     return edit
 
 
+def _reverse(col: str):
+    def edit(lines):
+        rows = [r.split(",") for r in lines]
+        j = rows[0].index(col)
+        for row, value in zip(rows[1:], [r[j] for r in rows[1:]][::-1], strict=True):
+            row[j] = value
+        return [",".join(r) for r in rows]
+
+    return edit
+
+
 def cases(tmp: Path) -> list[tuple[str, list[str], int]]:
     """(name, argv, expected exit code); files are made under ``tmp``."""
     o = str(tmp / "out")
@@ -148,6 +159,11 @@ def cases(tmp: Path) -> list[tuple[str, list[str], int]]:
         ("study: unknown [task] option", ["study", issue38["task_opt"], "--out", o], 2),
         ("study: --scheduler malformed", ["study", issue38["empty_rig"], "--scheduler", "tcp://host", "--out", o], 2),
         ("study: a script that raises", ["study", issue38["raises"], "--out", o], 3),
+        ("fit: x_m reversed in time", ["fit", issue38["x_reversed"], "--out", o], 2),
+        ("diagnose: x_m reversed in time", ["diagnose", issue38["x_reversed"], "--out", o], 2),
+        ("diagnose: x in mm with --no-unit-check", ["diagnose", str(_copy(tmp, "mm3", _scale("x_m", 1e3))), "--no-unit-check", "--out", o], 2),
+        ("fit: sidecar r_eff_m 0.5 (as --r-eff 0.5)", ["fit", issue38["r_eff_half"], "--stage", "torque", "--out", o], 0),
+        ("study: every case fails", ["study", issue38["all_fail"], "--out", o], 3),
     ]  # fmt: skip
 
 
@@ -185,6 +201,16 @@ def _issue38_files(tmp: Path) -> dict[str, str]:
         (tmp / f"{name}.toml").write_text(text)
         out[name] = str(tmp / f"{name}.toml")
     (tmp / "raises.py").write_text("def run(out, progress=None):\n    raise KeyError('lost')\n")
+    (tmp / "all_fail.toml").write_text(
+        head + "repeats = 2\n[rig]\nduration_s = 0.5\n[task]\nstage = 'nowhere'\n"
+    )
+    out["all_fail"] = str(tmp / "all_fail.toml")
+    out["x_reversed"] = str(_copy(tmp, "x_reversed", _reverse("x_m")))
+    half = _copy(tmp, "r_half")
+    half.with_suffix(".json").write_text(
+        json.dumps(json.loads(half.with_suffix(".json").read_text()) | {"r_eff_m": 0.5})
+    )
+    out["r_eff_half"] = str(half)
     return out
 
 

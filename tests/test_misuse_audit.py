@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
@@ -291,20 +291,30 @@ def test_a_fit_into_an_earlier_diagnosis_folder_leaves_no_finding_behind(rig, tm
 # ----------------------------------------------------------------------- 2. blame
 
 
-def test_a_bad_start_value_blames_the_data_not_fix(rig, tmp_path):
-    """x logged in mm and let through with --no-unit-check: the bell's start width is
-    then metres; the message is about the data, never '--fix' (which was not given)."""
-    df = pd.read_csv(rig)
-    df["x_m"] *= 1e3
-    path = tmp_path / "mm.csv"
+@pytest.mark.parametrize("command", ["fit", "diagnose"])
+@pytest.mark.parametrize("case", ["x in mm, --no-unit-check", "x reversed in time"])
+def test_a_bad_start_value_blames_the_data_not_fix(rig, tmp_path, command, case):
+    """x logged in mm and let through with --no-unit-check, or x reversed in time: the
+    bell's start width is then metres; the message is about the data, never '--fix'
+    (which was not given), and comes before any work (diagnose: no progress line)."""
+    if case == "x reversed in time":  # (the short rig's apply and release look alike)
+        source = Path(__file__).parents[1] / "datasets" / "steps_200hz.csv"
+        df = pd.read_csv(source)
+        df["x_m"] = df["x_m"].to_numpy()[::-1]
+        options = []
+    else:
+        source = rig
+        df = pd.read_csv(rig)
+        df["x_m"] *= 1e3
+        options = ["--no-unit-check"]
+    path = tmp_path / "bad.csv"
     df.to_csv(path, index=False)
+    path.with_suffix(".json").write_text(source.with_suffix(".json").read_text())
     out = tmp_path / "out"
-    line = refused(
-        runner.invoke(app, ["fit", str(path), "--no-unit-check", "--out", str(out)]), out
-    )
+    line = refused(runner.invoke(app, [command, str(path), *options, "--out", str(out)]), out)
     assert "--fix" not in line
     assert "the force stage's data (x_m and force_N) put the start value of a at" in line
-    assert "check their units" in line
+    assert "check their units" in line and "that time runs forward" in line
 
 
 # ----------------------------------------------------------------------- 3. tracebacks
@@ -384,6 +394,39 @@ def test_sample_settings_that_cannot_fit_in_memory_are_refused(rig, tmp_path, op
     out = tmp_path / "out"
     line = refused(runner.invoke(app, ["sample", str(rig), *options, "--out", str(out)]), out)
     assert re.search(message, line), line
+
+
+def test_a_fit_the_machine_cannot_hold_is_refused_with_its_estimate(
+    rig, rig_trace, tmp_path, monkeypatch
+):
+    """Was: the largest accepted trace (600,000 samples) fitted with an 8 GB peak, and a
+    machine with less memory ended in an out-of-memory error."""
+    import ewb_ident.inference.memory as memory
+    from ewb_ident.inference.problem import FitError
+
+    monkeypatch.setattr(memory, "physical_memory", lambda: 0.25e9)
+    message = (
+        r"a chain fit of \d+ samples needs about 0\.30\d GB, more than this machine's 0\.25 GB;"
+        r" fit a shorter excerpt, or a teacher-forced stage \(--stage force needs about 0\.3"
+    )
+    out = tmp_path / "out"
+    line = refused(runner.invoke(app, ["fit", str(rig), "--out", str(out)]), out)
+    assert re.search(message, line), line
+    with pytest.raises(FitError, match=message):
+        ei.fit(rig_trace)
+
+
+@pytest.mark.parametrize(
+    ("samples", "stage", "peak_gb"),
+    [(150_000, "chain", 2.23), (300_000, "chain", 4.16), (600_000, "chain", 8.11),
+     (600_000, "force", 1.32), (600_000, "torque", 1.33)],
+)  # fmt: skip
+def test_the_fit_memory_estimate_covers_the_measured_peaks(samples, stage, peak_gb):
+    """Peak resident memory of ``ewb-ident fit`` on a 1 kHz position trace: the
+    estimate is above it, by at most a fifth."""
+    from ewb_ident.inference.memory import fit_memory_bytes
+
+    assert peak_gb <= fit_memory_bytes(samples, stage) / 1e9 <= 1.2 * peak_gb
 
 
 def test_simulate_refuses_a_negative_seed(tmp_path):
@@ -637,31 +680,21 @@ def _run_corpus_case(tmp_path: Path, k: int) -> None:
         assert not [p for p in set(tmp_path.rglob("*")) - before if p.is_file()]
 
 
-@pytest.fixture(scope="module")
-def corpus_names(tmp_path_factory) -> list[str]:
-    return [c[0] for c in _corpus().cases(tmp_path_factory.mktemp("names"))]
-
-
-def test_the_corpus_cases_of_issue_38_behave(tmp_path_factory, corpus_names):
-    """benchmarks/misuse_corpus.py's cases from issue 38 (all refused at once, or a
-    study script's own error): the expected exit code, no traceback, nothing written
-    when refused."""
-    first = corpus_names.index("fit: x in m, mapping declares mm")
-    for k in range(first, len(corpus_names)):
-        _run_corpus_case(tmp_path_factory.mktemp("case"), k)
-
-
-@pytest.mark.slow
-def test_the_whole_misuse_corpus_behaves(tmp_path_factory, corpus_names):
-    """Every case of the corpus, old and new (the old ones fit whole traces)."""
-    for k in range(len(corpus_names)):
+def test_the_whole_misuse_corpus_behaves(tmp_path_factory):
+    """Every case of benchmarks/misuse_corpus.py, old and new, in the default suite: the
+    expected exit code, no traceback, nothing written when refused."""
+    names = [c[0] for c in _corpus().cases(tmp_path_factory.mktemp("names"))]
+    assert len(names) >= 62
+    for k in range(len(names)):
         _run_corpus_case(tmp_path_factory.mktemp("case"), k)
 
 
 # ----------------------------------------------------------------------- properties
 
-#: Examples per property: a few dozen in the default suite, many more with
-#: EWB_MISUSE_PROFILE=slow.
+#: Examples per property: 25 for the readers in the default suite, 6 to 12 for the
+#: properties that run whole commands (fit, sample, diagnose; about 40 s together);
+#: with EWB_MISUSE_PROFILE=slow, 500 and 60 to 120 (about 10 min):
+#: ``EWB_MISUSE_PROFILE=slow python -m pytest tests/test_misuse_audit.py -k any_``.
 settings.register_profile(
     "misuse",
     max_examples=25,
@@ -670,8 +703,9 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.register_profile("misuse-slow", settings.get_profile("misuse"), max_examples=500)
-PROFILE = settings.get_profile("misuse-slow" if os.environ.get("EWB_MISUSE_PROFILE") == "slow"
-                               else "misuse")  # fmt: skip
+SLOW_PROFILE = settings.get_profile("misuse-slow")
+PROFILE = SLOW_PROFILE if os.environ.get("EWB_MISUSE_PROFILE") == "slow" else \
+    settings.get_profile("misuse")  # fmt: skip
 
 CELLS = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True, width=64).map(repr),
@@ -766,34 +800,208 @@ def test_every_channel_scaled_by_a_unit_factor_is_refused(rig_trace, column, fac
     assert any(f"column '{c}'" in text for c in named), text
 
 
-@settings(PROFILE, max_examples=min(PROFILE.max_examples, 12))
-@given(
-    stage=st.sampled_from(["force", "torque", "gap", "brake"]),
-    fix=st.one_of(st.none(), st.sampled_from(["a=1e-3", "mu=2", "R=x", "b", "F_rt=nan", "Z=1"])),
-    free=st.one_of(st.none(), st.sampled_from(["a,b", "mu", "a,,", "kb", ""])),
-    r_eff=st.one_of(st.none(), st.sampled_from(["0.15", "0.5", "0.51", "-1", "nan", "x"])),
-    out=st.sampled_from(["out", "", "a/../out", "x" * 300]),
-)
-def test_any_fit_options_give_a_result_or_one_line(rig, stage, fix, free, r_eff, out):
-    """Random option sets on the short trace: exit 0 or 3 with fit.json, or exit 2 with
-    one line and nothing written; never a traceback."""
+def examples(default: int, slow: int) -> settings:
+    """The property profile with ``default`` examples (``slow`` with
+    EWB_MISUSE_PROFILE=slow): the commands' properties run whole commands."""
+    return settings(PROFILE, max_examples=slow if PROFILE is SLOW_PROFILE else default)
+
+
+#: Output folders: mostly a good one, so that the other inputs decide.
+OUTS = st.sampled_from(["out", "out", "out", "", "a/../out", "x" * 300])
+
+
+def _result_or_one_line(argv: list[str], out: str, result_file: str) -> int:
+    """Run ``ewb-ident ARGV --out OUT`` (``out`` relative to a fresh folder; "" is
+    given as "") and check the invariant: exit 0 or 3 with OUT/RESULT_FILE, or exit 2
+    with one line and nothing written; never a traceback. Returns the exit code."""
     import tempfile
 
     with tempfile.TemporaryDirectory() as folder:
         target = str(Path(folder) / out) if out else ""
-        argv = ["fit", str(rig), "--stage", stage, "--out", target]
-        for option, value in (("--fix", fix), ("--free", free), ("--r-eff", r_eff)):
-            if value is not None:
-                argv += [option, value]
+        argv = [*argv, "--out", target]
         result = runner.invoke(app, argv)
-        assert result.exception is None or isinstance(result.exception, SystemExit), argv
+        assert result.exception is None or isinstance(result.exception, SystemExit), (
+            argv,
+            result.output,
+        )
         assert result.exit_code in (0, 2, 3), (argv, result.output)
+        event(f"exit {result.exit_code}")  # (pytest --hypothesis-show-statistics)
         if result.exit_code == 2:
             lines = [line for line in result.output.splitlines() if line.strip()]
             assert len(lines) == 1 or "Usage:" in result.output, result.output
             assert not [p for p in Path(folder).rglob("*") if p.is_file()], argv
         else:
-            assert (Path(target) / "fit.json").is_file(), argv
+            assert (Path(target) / result_file).is_file(), argv
+        return result.exit_code
+
+
+@examples(12, 120)
+@given(
+    stage=st.sampled_from(["force", "torque", "gap", "brake"]),
+    fix=st.one_of(st.none(), st.sampled_from(["a=1e-3", "mu=2", "R=x", "b", "F_rt=nan", "Z=1"])),
+    free=st.one_of(st.none(), st.sampled_from(["a,b", "mu", "a,,", "kb", ""])),
+    r_eff=st.one_of(st.none(), st.sampled_from(["0.15", "0.5", "0.51", "-1", "nan", "x"])),
+    out=OUTS,
+)
+def test_any_fit_options_give_a_result_or_one_line(rig, stage, fix, free, r_eff, out):
+    """Random option sets on the short trace: exit 0 or 3 with fit.json, or exit 2 with
+    one line and nothing written; never a traceback."""
+    argv = ["fit", str(rig), "--stage", stage]
+    for option, value in (("--fix", fix), ("--free", free), ("--r-eff", r_eff)):
+        if value is not None:
+            argv += [option, value]
+    _result_or_one_line(argv, out, "fit.json")
+
+
+@pytest.fixture(scope="module")
+def inputs(rig, tmp_path_factory) -> dict[str, str]:
+    """Files the commands' properties pass: traces (the rig's, without torque, too
+    short, with an empty cell, x in mm, none), priors files and mappings."""
+    folder = tmp_path_factory.mktemp("inputs")
+    df = pd.read_csv(rig)
+    side = rig.with_suffix(".json").read_text()
+    traces = {
+        "rig": df,
+        "no_torque": df.drop(columns=["torque_Nm"]),
+        "short": df.head(12),
+        "empty_cell": df.astype({"force_N": object}).assign(
+            force_N=lambda d: d["force_N"].where(d.index != 40, "")
+        ),
+        "x_in_mm": df.assign(x_m=df["x_m"] * 1e3),
+    }
+    out = {"missing": str(folder / "missing.csv")}
+    for name, frame in traces.items():
+        frame.to_csv(folder / f"{name}.csv", index=False)
+        (folder / f"{name}.json").write_text(side)
+        out[name] = str(folder / f"{name}.csv")
+    for name, text in {
+        "priors_ok": '[a]\ndist = "lognormal"\nmedian = 7e-4\nsigma_log = 1.0\nlower = 1e-6\n',
+        "priors_unknown": '[Z]\ndist = "normal"\nmean = 1\nsd = 1\n',
+        "priors_family": '[a]\ndist = "cauchy"\nloc = 1\n',
+        "priors_keys": '[mu]\ndist = "normal"\nmean = 0.3\n',
+        "priors_bad_toml": "[a\ndist = ",
+        "priors_bounds": '[a]\ndist = "uniform"\nlower = 1\nupper = 0\n',
+    }.items():
+        (folder / f"{name}.toml").write_text(text)
+        out[name] = str(folder / f"{name}.toml")
+    for name, doc in {
+        "map_ok": {"force_N": {"column": "force_N", "unit": "N"}},
+        "map_kn": {"force_N": {"column": "force_N", "unit": "kN"}},
+        "map_unknown": {"force_N": {"column": "brake_force", "unit": "N"}},
+    }.items():
+        (folder / f"{name}.json").write_text(json.dumps(doc))
+        out[name] = str(folder / f"{name}.json")
+    out["map_missing"] = str(folder / "nomap.json")
+    return out
+
+
+#: An option's value that is no value: the option is a flag.
+FLAG = "<flag>"
+
+
+def _options(most: int = 3, **choices) -> st.SearchStrategy[list[str]]:
+    """Up to ``most`` of the options, each at one of its values, as a flat argv (few at
+    a time, so that some option sets are accepted and run); a value "@name" is the file
+    ``inputs[name]`` (:func:`_resolved`)."""
+
+    def argv(option: str) -> st.SearchStrategy[list[str]]:
+        return st.sampled_from(choices[option]).map(
+            lambda v: [option] if v == FLAG else [option, v]
+        )
+
+    names = st.lists(st.sampled_from(sorted(choices)), max_size=most, unique=True)
+    return names.flatmap(
+        lambda picked: st.tuples(*map(argv, picked)).map(
+            lambda parts: [a for part in parts for a in part]
+        )
+    )
+
+
+def _resolved(argv: list[str], inputs: dict[str, str]) -> list[str]:
+    return [inputs[a[1:]] if a.startswith("@") else a for a in argv]
+
+
+#: Traces: half the time the rig's as recorded, so that the options decide.
+TRACES = st.sampled_from(["rig"] * 5 + ["no_torque", "short", "empty_cell", "x_in_mm", "missing"])
+#: ``sample``: a run that is accepted stays tiny (the force or torque stage, 8 walkers
+#: for 30 steps, 5 draws): every other value of an option that sets its size is one
+#: to refuse.
+SAMPLE_BASE = ["--stage", "force", "--walkers", "8", "--steps", "30", "--max-steps", "30",
+               "--draws", "5", "--min-ess", "5", "--no-progress"]  # fmt: skip
+
+
+@examples(6, 60)
+@given(
+    trace=TRACES,
+    options=_options(
+        **{
+            "--stage": ["torque", "brake", "", "force,torque", "chain,force"],
+            "--free": ["a,b", "mu", "a,,", "kb", "", "Z"],
+            "--per-trace": ["c", "x", ""],
+            "--fix": ["a=1e-3", "mu=2", "R=x", "b", "F_rt=nan"],
+            "--noise": ["white", "ar1", "pink", ""],
+            "--steps": ["0", "-1", "x", "20"],
+            "--max-steps": ["0", "10", "-5"],
+            "--walkers": ["0", "3", "7", "-8", "2000000", "x"],
+            "--ensembles": ["1", "0", "5000", "x"],
+            "--min-ess": ["-1", "nan", "inf", "0"],
+            "--hdi-prob": ["0.5", "0", "1", "1.5", "nan"],
+            "--draws": ["0", "-1", "x", "10"],
+            "--seed": ["-1", "7", "x", "1e3"],
+            "--integrator": ["heun", "rk4", ""],
+            "--with": ["gremlins", "backlash", "sensor_delay", "sensor_offset[force_N]"],
+            "--with-diagnosis": ["@missing", "@map_ok"],
+            "--priors": [
+                "@priors_ok",
+                "@priors_unknown",
+                "@priors_family",
+                "@priors_keys",
+                "@priors_bad_toml",
+                "@priors_bounds",
+                "@missing",
+            ],
+            "--r-eff": ["0.15", "0.51", "nan", "x"],
+        }
+    ),  # fmt: skip
+    out=OUTS,
+)
+def test_any_sample_options_give_a_result_or_one_line(inputs, trace, options, out):
+    """``sample`` with random option sets, priors files and traces: exit 0 or 3 with
+    summary.json, or exit 2 with one line and nothing written; never a traceback."""
+    argv = ["sample", inputs[trace], *SAMPLE_BASE, *_resolved(options, inputs)]
+    _result_or_one_line(argv, out, "summary.json")
+
+
+@examples(10, 60)
+@given(
+    trace=TRACES,
+    options=_options(
+        **{
+            "--catalog": [
+                "backlash",
+                "sensor_offset,stiction",
+                "",
+                "gremlins",
+                "backlash,,",
+                "sensor_delay[force_N]",
+                "sensor_delay[nope]",
+                "BACKLASH",
+            ],
+            "--bic-threshold": ["10", "0", "-1", "nan", "inf", "x", "1e9"],
+            "--figures": [FLAG],
+            "--map": ["@map_ok", "@map_kn", "@map_unknown", "@map_missing"],
+            "--r-eff": ["0.15", "0.51", "nan", "x"],
+            "--fill-gaps": [FLAG],
+            "--no-unit-check": [FLAG],
+        }
+    ),  # fmt: skip
+    out=OUTS,
+)
+def test_any_diagnose_options_give_a_result_or_one_line(inputs, trace, options, out):
+    """``diagnose`` with random option sets, mappings and traces: exit 0 or 3 with
+    diagnosis.json, or exit 2 with one line and nothing written; never a traceback."""
+    argv = ["diagnose", inputs[trace], "--no-figures", *_resolved(options, inputs)]
+    _result_or_one_line(argv, out, "diagnosis.json")
 
 
 def test_every_error_the_tool_raises_derives_from_one_base():

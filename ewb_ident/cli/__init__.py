@@ -67,29 +67,12 @@ def _main(
         raise typer.Exit(0)
 
 
-def _interrupted(signum, frame) -> None:
-    """SIGINT / SIGTERM: end the run now with 130 / 143, leaving no temporary file and
-    no final file that was not complete. (An exception raised here could land in a
-    callback that swallows it, e.g. JAX's garbage-collection hook, so the process ends
-    directly once the atomic writes' temporary files are removed.)"""
-    import os
-    import signal
-
-    from ewb_ident.data.outputs import remove_pending
-
-    remove_pending()
-    sys.stderr.write("interrupted\n")
-    sys.stderr.flush()
-    os._exit(130 if signum == signal.SIGINT else 143)
-
-
 def main() -> None:
     """Entry point of the ``ewb-ident`` script: :func:`ewb_ident.configure`, then the
     command."""
-    import signal
+    from ewb_ident.cli import interrupts
 
-    signal.signal(signal.SIGINT, _interrupted)
-    signal.signal(signal.SIGTERM, _interrupted)
+    interrupts.install()  # SIGINT / SIGTERM end the run at once, leaving no file of it
 
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
     if command not in ("study", "batch"):
@@ -112,7 +95,11 @@ def main() -> None:
     try:
         app()
     except SystemExit as done:
+        interrupts.hold_if_ending()
         _exit_now(done)
+    except BaseException:
+        interrupts.hold_if_ending()
+        raise
     raise SystemExit(0)  # typer's app always exits; this keeps the contract if it did not
 
 

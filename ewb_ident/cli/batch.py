@@ -241,31 +241,24 @@ def _sampler(posterior: bool, steps, max_steps, min_ess, seed):
 
 def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool):
     """The campaign of the logs' apply cycles, their files written under OUT/cycles/;
-    a log that cannot be read or split is one line, exit 2, and no cycle file is left."""
-    import shutil
+    a log that cannot be read or split is one line, exit 2, and no cycle file is left;
+    nor is one when the split is interrupted."""
     import time
 
     from ewb_ident.data.campaign import file_hash
     from ewb_ident.data.cycles import CycleRule, cycle_campaign
+    from ewb_ident.data.outputs import missing_folders, removed_if_interrupted
     from ewb_ident.data.trace import InputError
 
     rule = CycleRule(channel=channel)
     folder = out / "cycles"
-    made_out, made = not out.exists(), not folder.exists()
     t0 = time.perf_counter()
-    try:
-        cycles, splits, table = cycle_campaign(campaign, folder, rule=rule,
-                                               fill_gaps=fill_gaps, check_units=check_units)
-    except InputError as err:
-        if made:
-            shutil.rmtree(folder, ignore_errors=True)
-        if made_out and out.exists() and not any(out.iterdir()):
-            out.rmdir()
-        fail(str(err))
-    except BaseException:
-        if made:
-            shutil.rmtree(folder, ignore_errors=True)
-        raise
+    with removed_if_interrupted(None if folder.exists() else folder, missing_folders(out)):
+        try:
+            cycles, splits, table = cycle_campaign(campaign, folder, rule=rule,
+                                                   fill_gaps=fill_gaps, check_units=check_units)
+        except InputError as err:
+            fail(str(err))
     for log in splits:
         s = log.split
         typer.echo(f"{log.name}: {len(s.complete)} apply cycles ({len(s.cycles) - len(s.complete)}"

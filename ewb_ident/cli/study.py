@@ -33,12 +33,10 @@ def study(
 
     from ewb_ident.data.outputs import write_run
     from ewb_ident.study import (
-        ScriptError,
         StudyError,
         cluster_description,
         failed_cases,
         load_study,
-        run_script,
         run_study,
         summarise,
     )
@@ -56,39 +54,28 @@ def study(
         except ClusterError as err:
             fail(str(err))
         info = cluster_description(client)
-        typer.echo(f"running on the Dask cluster at {info['address']} with {info['workers']} "
-                   "worker(s)")
-    out.mkdir(parents=True, exist_ok=True)
-    with Progress(transient=True) as bar:
-        job = bar.add_task(f"study {spec.name}", total=len(spec.cases()) or None)
-
-        def progress(done, total):
-            bar.update(job, completed=done, total=total)
-
-        if spec.script is not None:
+        typer.echo(
+            f"running on the Dask cluster at {info['address']} with {info['workers']} worker(s)"
+        )
+    if spec.script is not None:
+        table, report = _run_script(spec, out)
+    else:
+        with Progress(transient=True) as bar:
+            job = bar.add_task(f"study {spec.name}", total=len(spec.cases()) or None)
             try:
-                table, report = run_script(spec, out, progress=progress)
-            except ScriptError as err:
-                typer.echo(f"error: {str(err).splitlines()[0] if str(err) else err}", err=True)
-                raise typer.Exit(EXIT_UNTRUSTWORTHY) from None
-        else:
-            try:
-                table = run_study(spec, scheduler=client, progress=progress)
+                table = run_study(
+                    spec,
+                    scheduler=client,
+                    progress=lambda done, total: bar.update(job, completed=done, total=total),
+                )
             except StudyError as err:
                 fail(str(err))
             finally:
                 if client is not None:
                     client.close()
-            report = summarise(spec, table)
-    with writing(out):
-        write_run(
-            out,
-            "study",
-            [
-                (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
-                (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
-            ],
-        )
+        report = summarise(spec, table)
+        with writing(out):
+            write_run(out, "study", _tables(out, table, report))
     typer.echo(report)
     typer.echo(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     failed = failed_cases(table)
@@ -99,3 +86,41 @@ def study(
             err=True,
         )
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
+
+
+def _tables(out: Path, table, report: str):
+    """The writers of a study's results.csv and report.md."""
+    return [
+        (out / "results.csv", lambda tmp: table.to_csv(tmp, index=False)),
+        (out / "report.md", lambda tmp: tmp.write_text(report, encoding="utf-8")),
+    ]
+
+
+def _run_script(spec, out: Path):
+    """Run a script study into a staging folder inside OUT, and move what it wrote
+    into OUT with results.csv and report.md as one set, only once it has returned: a
+    script that raises, or an interrupt, leaves OUT as it was (a folder this run made
+    is removed). The staging folder starts with the files an earlier run of the same
+    script left in OUT, so a script resumes from a complete run."""
+    from rich.progress import Progress
+
+    from ewb_ident.data.outputs import staged_run, staged_writers, write_run
+    from ewb_ident.study import ScriptError, run_script
+
+    run = f"study {spec.script}"  # a rerun of the same script resumes from its files
+    with staged_run(out, run) as stage, Progress(transient=True) as bar:
+        job = bar.add_task(f"study {spec.name}", total=None)
+        try:
+            table, report = run_script(
+                spec,
+                stage,
+                progress=lambda done, total: bar.update(job, completed=done, total=total),
+            )
+        except ScriptError as err:
+            typer.echo(f"error: {str(err).splitlines()[0] if str(err) else err}", err=True)
+            raise typer.Exit(EXIT_UNTRUSTWORTHY) from None
+        writers = _tables(out, table, report)
+        skip = [w[0].name for w in writers]
+        with writing(out):
+            write_run(out, "study", staged_writers(stage, out, skip) + writers, run=run)
+    return table, report

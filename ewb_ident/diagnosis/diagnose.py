@@ -177,7 +177,7 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         timings[step] = time.perf_counter() - t_start - sum(timings.values())
 
     pool = _catalog_pool(catalog)
-    ses = Session(trace)
+    ses = Session(trace).checked()  # data no fit can start from: refused before any work
     say = progress or (lambda text: None)
     say("baseline fits of every stage")
     ses.baseline()

@@ -33,6 +33,7 @@ from ewb_ident.inference.augmented import (
     make_data,
 )
 from ewb_ident.inference.least_squares import fit_checked_traces as fit_stage
+from ewb_ident.inference.least_squares import start_of_checked_trace as start_of
 from ewb_ident.inference.problem import default_free
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad
@@ -118,6 +119,8 @@ class Session:
                 "force_N, or force_N and torque_Nm); record these channels"
             )
         self.noise = {ch: sensor_noise(trace[ch]) for ch in CHANNELS if trace.has(ch)}
+        #: Each stage's start values for its baseline fit, once :meth:`checked`.
+        self.starts: dict[str, dict[str, float]] = {}
         #: Channels (inputs included) on a grid coarse against their noise.
         self.rounded = {ch for ch in self.cols if coarsely_rounded(trace[ch])}
         self.labels = phase_labels(trace)
@@ -153,6 +156,14 @@ class Session:
 
     # -- baseline
 
+    def checked(self) -> Session:
+        """This session, once its trace's data give every stage's baseline fit a start
+        inside the parameters' bounds (else the :class:`FitError` that fit would raise,
+        see :func:`~ewb_ident.inference.least_squares.start_of_checked_trace`); the
+        baseline fits then begin from those starts."""
+        self.starts = {s: start_of(self.trace, stage=s) for s in self.stages}
+        return self
+
     def baseline(self) -> None:
         tr = self.trace
         vals = EWBParams().as_dict()
@@ -164,7 +175,7 @@ class Session:
         for s in self.stages:
             free = default_free(s, [tr])
             self.free[s] = tuple(free)
-            res = _safe_fit(tr, s, self.base_messages)
+            res = _safe_fit(tr, s, self.base_messages, self.starts.get(s))
             if res is None:
                 continue
             bad = []
@@ -343,12 +354,12 @@ def chain_metrics(trace: Trace, f: AugFit) -> dict[str, dict[str, float | None]]
     return {ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)}
 
 
-def _safe_fit(trace: Trace, stage: str, messages: list[str]):
-    """The baseline fit of one stage by :func:`ewb_ident.inference.least_squares.fit`, or
-    ``None`` (and a
-    message) when it fails numerically: the diagnosis then starts from the seed values."""
+def _safe_fit(trace: Trace, stage: str, messages: list[str], start=None):
+    """The baseline fit of one stage by :func:`ewb_ident.inference.least_squares.fit`
+    (from ``start``, its data's start values, if given), or ``None`` (and a message)
+    when it fails numerically: the diagnosis then starts from the seed values."""
     try:
-        return fit_stage(trace, stage=stage)
+        return fit_stage(trace, stage=stage, start=start)
     except (np.linalg.LinAlgError, FloatingPointError, ArithmeticError) as err:
         messages.append(f"the baseline {stage} fit failed ({err}); started from seed values")
         return None

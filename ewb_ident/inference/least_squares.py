@@ -41,6 +41,7 @@ from ewb_ident.data.trace import Trace
 from ewb_ident.data.validation import check_traces
 from ewb_ident.inference.fit_result import FitResult, motor_combinations
 from ewb_ident.inference.initial import bell_start, motor_start
+from ewb_ident.inference.memory import check_fit_memory
 from ewb_ident.inference.null_directions import hold_flank_exponent, hold_null_directions, hold_one
 from ewb_ident.inference.problem import (
     FitError,
@@ -274,7 +275,8 @@ def fit(
     Raises
     ------
     FitError
-        Unknown stage or parameter; start values the data put outside their bounds.
+        Unknown stage or parameter; start values the data put outside their bounds;
+        traces longer than the machine's memory can fit (its estimate).
     TraceError
         A trace that fails :func:`~ewb_ident.data.validation.check_traces` (the
         command line's checks), or lacks a column the stage needs.
@@ -284,21 +286,37 @@ def fit(
     """
     traces = check_traces(traces, stages=(stage,) if stage in STAGES else None)
     free, per_trace, fixed, start = check_parameter_options(free, per_trace, fixed, start)
+    check_fit_memory(traces, stage)
     return _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol)
 
 
 @numerics
-def fit_checked_traces(trace: Trace, *, stage: Stage) -> FitResult:
+def fit_checked_traces(
+    trace: Trace, *, stage: Stage, start: dict[str, float] | None = None
+) -> FitResult:
     """:func:`fit` of one stage, with its defaults, of a trace its caller has checked
     (the diagnosis's baseline fits of every stage the trace's columns serve, whether or
-    not its force clamps)."""
-    return _fit((trace,), stage, None, None, None, None, EXPONENTIAL, 300, 1e-8)
+    not its force clamps), from ``start`` if given (of :func:`start_of_checked_trace`)."""
+    return _fit((trace,), stage, None, None, None, None, EXPONENTIAL, 300, 1e-8, start)
 
 
-def _fit(traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol) -> FitResult:
-    """:func:`fit` of checked traces and options (the sub-fits of its start call this)."""
+def start_of_checked_trace(trace: Trace, *, stage: Stage) -> dict[str, float]:
+    """The start values :func:`fit_checked_traces` would begin from, or at once the
+    :class:`FitError` it would raise for data that put one outside its bounds (x logged
+    in mm let through by --no-unit-check, a channel reversed in time)."""
+    setup = build_setup((trace,), stage, None, None, None, EXPONENTIAL)
+    return _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
+
+
+def _fit(
+    traces, stage, free, per_trace, fixed, start, integrator, max_steps, tol, computed=None
+) -> FitResult:
+    """:func:`fit` of checked traces and options (the sub-fits of its start call this);
+    ``computed``: the data's start values, if already computed."""
     setup = build_setup(traces, stage, free, per_trace, fixed, integrator)
-    st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
+    st = computed
+    if st is None:
+        st = _start_values(setup.traces, stage, setup.free, setup.per_trace, setup.base)
     st = {k: v for k, v in st.items() if usable(k.split("[")[0], v)}
     st |= dict(start or {})
     # No null direction reaches the solver: at the start, a combination of free

@@ -17,6 +17,7 @@ import numpy as np
 from ewb_ident.data.metrics import INTERVAL_PROB
 from ewb_ident.data.trace import InputError
 from ewb_ident.inference.fit_result import FitResult
+from ewb_ident.inference.memory import physical_memory
 from ewb_ident.inference.priors import Prior, param_info
 from ewb_ident.inference.problem import StageProblem
 from ewb_ident.model.params import ParamInfo
@@ -76,16 +77,6 @@ class SampleError(InputError):
 #: Coordinates a whole-chain posterior typically samples (the model's free parameters
 #: and a start angle), for memory estimates made before the fit says how many.
 TYPICAL_DIMENSION = 16
-
-
-def physical_memory() -> float:
-    """The machine's memory, bytes (16 GB where the system does not say)."""
-    import os
-
-    try:
-        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return 16e9
 
 
 @dataclass(frozen=True)
