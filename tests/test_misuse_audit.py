@@ -700,9 +700,13 @@ settings.register_profile(
     max_examples=25,
     deadline=None,
     database=None,  # nothing written into the checkout
+    derandomize=True,  # the same examples on every run of the default suite
     suppress_health_check=[HealthCheck.too_slow],
 )
-settings.register_profile("misuse-slow", settings.get_profile("misuse"), max_examples=500)
+# The slow profile explores: new random examples on each run.
+settings.register_profile(
+    "misuse-slow", settings.get_profile("misuse"), max_examples=500, derandomize=False
+)
 SLOW_PROFILE = settings.get_profile("misuse-slow")
 PROFILE = SLOW_PROFILE if os.environ.get("EWB_MISUSE_PROFILE") == "slow" else \
     settings.get_profile("misuse")  # fmt: skip

@@ -344,7 +344,9 @@ def test_cli_writes_contract_files_and_same_seed_same_summary(tmp_path):
     ("args", "message"),
     [
         (["--noise", "pink"], "--noise must be one of"),
-        (["--min-ess", "0"], "--min-ess must be > 0, got 0.0"),
+        (["--min-ess", "0"], "--min-ess must be a finite number > 0, got 0.0"),
+        (["--min-ess", "inf"], "--min-ess must be a finite number > 0, got inf"),
+        (["--min-ess", "nan"], "--min-ess must be a finite number > 0, got nan"),
         (["--steps", "20", "--max-steps", "5"], "--max-steps must be an integer >= --steps (20)"),
         (["--walkers", "7"], "--walkers must be an even integer >= 4, got 7"),
         (["--hdi-prob", "1"], "--hdi-prob must lie strictly between 0 and 1"),

@@ -197,8 +197,8 @@ class SamplerSettings:
             raise SampleError(
                 f"{name('hdi_prob')} must lie strictly between 0 and 1, got {s.hdi_prob!r}"
             )
-        if not s.min_ess > 0:
-            raise SampleError(f"{name('min_ess')} must be > 0, got {s.min_ess!r}")
+        if not (math.isfinite(s.min_ess) and s.min_ess > 0):
+            raise SampleError(f"{name('min_ess')} must be a finite number > 0, got {s.min_ess!r}")
         if not isinstance(s.max_draws, int) or s.max_draws < s.n_ensembles:
             raise SampleError(
                 f"{name('max_draws')} must be an integer >= {name('n_ensembles')} "
