@@ -10,6 +10,7 @@ import typer
 
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
+    SAMPLER_OPTIONS,
     FillGaps,
     Mapping,
     NoUnitCheck,
@@ -220,20 +221,20 @@ def batch(
 def _sampler(posterior: bool, steps, max_steps, min_ess, seed):
     """The sampler settings of --posterior (``None`` without it); a sampler option
     without --posterior, or a setting that cannot be used, is one line, exit 2."""
-    given = {"--steps": steps, "--max-steps": max_steps, "--min-ess": min_ess, "--seed": seed}
+    given = {"n_steps": steps, "max_steps": max_steps, "min_ess": min_ess, "seed": seed}
+    given = {k: v for k, v in given.items() if v is not None}
     if not posterior:
-        named = [k for k, v in given.items() if v is not None]
-        if named:
-            fail(f"{named[0]} is a setting of --posterior; add --posterior or drop it")
+        if given:
+            fail(
+                f"{SAMPLER_OPTIONS[next(iter(given))]} is a setting of --posterior; add "
+                "--posterior or drop it"
+            )
         return None
     from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
 
-    settings = SamplerSettings(n_steps=2000 if steps is None else steps, max_steps=max_steps,
-                               min_ess=400.0 if min_ess is None else min_ess,
-                               seed=0 if seed is None else seed)
+    settings = SamplerSettings(**given)
     try:
-        settings.check(names={"n_steps": "--steps", "max_steps": "--max-steps",
-                              "min_ess": "--min-ess", "seed": "--seed"})
+        settings.check(names=SAMPLER_OPTIONS)
     except SampleError as err:
         fail(str(err))
     return settings

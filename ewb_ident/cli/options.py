@@ -373,3 +373,18 @@ def command_line() -> str:
         return "ewb-ident (called from Python)"
     opts = [f"{k}={v!r}" for k, v in ctx.params.items()]
     return f"{ctx.command_path} ({', '.join(opts)})"
+
+
+SAMPLER_OPTIONS = {
+    "noise_model": "--noise",
+    "n_walkers": "--walkers",
+    "n_steps": "--steps",
+    "max_steps": "--max-steps",
+    "n_ensembles": "--ensembles",
+    "min_ess": "--min-ess",
+    "hdi_prob": "--hdi-prob",
+    "max_draws": "--draws",
+    "seed": "--seed",
+}
+"""The command-line option of each sampler setting (``SamplerSettings`` field), for
+messages in the options' own spelling (sample, report, batch --posterior)."""

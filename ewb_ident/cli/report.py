@@ -8,6 +8,7 @@ import typer
 
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
+    SAMPLER_OPTIONS,
     FillGaps,
     Mapping,
     NoUnitCheck,
@@ -61,7 +62,7 @@ def report(
 
     sampler = SamplerSettings(n_steps=steps, min_ess=min_ess, seed=seed)
     try:  # before the traces are read, in the options' own spelling
-        sampler.check(names={"n_steps": "--steps", "min_ess": "--min-ess"})
+        sampler.check(names=SAMPLER_OPTIONS)
     except SampleError as err:
         fail(str(err))
     post = diag = None

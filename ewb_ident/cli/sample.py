@@ -9,6 +9,7 @@ import typer
 
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
+    SAMPLER_OPTIONS,
     FillGaps,
     Mapping,
     NoUnitCheck,
@@ -129,7 +130,7 @@ def sample(
         seed=seed,
     )
     try:  # before the traces are read, in the options' own spelling
-        settings.check(names=_OPTION_NAMES)
+        settings.check(names=SAMPLER_OPTIONS)
     except SampleError as err:
         fail(str(err))
     stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
@@ -142,7 +143,7 @@ def sample(
             traces, None if stages == "stages" else stages, mapping, fill_gaps, no_unit_check, r_eff
         )
         # The memory the settings need, from the traces' length, in the options' spelling.
-        settings.check(names=_OPTION_NAMES, n_samples=sum(t.n for t in trs))
+        settings.check(names=SAMPLER_OPTIONS, n_samples=sum(t.n for t in trs))
         if bar is not None:
             bar.start()
         common = dict(priors=priors, settings=settings, progress=progress)
@@ -171,20 +172,6 @@ def sample(
     )
     if not result.converged:
         raise typer.Exit(EXIT_UNTRUSTWORTHY)
-
-
-_OPTION_NAMES = {
-    "noise_model": "--noise",
-    "n_walkers": "--walkers",
-    "n_steps": "--steps",
-    "max_steps": "--max-steps",
-    "n_ensembles": "--ensembles",
-    "min_ess": "--min-ess",
-    "hdi_prob": "--hdi-prob",
-    "max_draws": "--draws",
-    "seed": "--seed",
-}
-"""The options of :func:`sample` named by the sampler settings they set."""
 
 
 def _write(out, result, traces) -> None:

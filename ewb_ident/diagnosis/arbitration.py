@@ -40,7 +40,7 @@ def fits_of(ses: Session, selected):
     return fit
 
 
-def _drop(work: Any, ses: Session, stage: str, at: Sequence[Any], why: str) -> None:
+def _drop(work: Any, stage: str, at: Sequence[Any], why: str) -> None:
     """Unselect the catalog mechanisms ``at`` (their candidates say why) and make them
     the rivals of a learned term at ``stage``."""
     for mech in at:
@@ -79,7 +79,7 @@ def second_opinion(ses: Session, work: Any) -> None:
             f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
             f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
         )
-        _drop(work, ses, stage, at, why)
+        _drop(work, stage, at, why)
         for st in T:
             work.current[st] = fits_of(ses, work.selected)((st,))
 
@@ -107,7 +107,7 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
             f"{', '.join(m.variant for m in at)} with a learned term on top "
             f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
         )
-        _drop(work, ses, disc.stage, at, why)
+        _drop(work, disc.stage, at, why)
         work.discoveries[k] = (alone, *res)
         for st in res[0].stages:
             work.current[st] = res[0]
