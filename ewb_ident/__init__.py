@@ -58,7 +58,7 @@ _PUBLIC = {
     "fit_corrected": "diagnosis.corrected",
     "CorrectedFit": "diagnosis.corrected",
     "CorrectedModel": "diagnosis.corrected",
-    "LearnedSpec": "diagnosis.discovery",
+    "LearnedSpec": "diagnosis.learned_spec",
     "validate": "inference.validate",
     "ValidationResult": "inference.validate",
     "configure": "runtime.config",
@@ -78,7 +78,7 @@ if TYPE_CHECKING:
     from ewb_ident.diagnosis.corrected import CorrectedModel as CorrectedModel
     from ewb_ident.diagnosis.corrected import fit_corrected as fit_corrected
     from ewb_ident.diagnosis.diagnose import diagnose as diagnose
-    from ewb_ident.diagnosis.discovery import LearnedSpec as LearnedSpec
+    from ewb_ident.diagnosis.learned_spec import LearnedSpec as LearnedSpec
     from ewb_ident.diagnosis.result import DiagnosisResult as DiagnosisResult
     from ewb_ident.diagnosis.session import DiagnoseError as DiagnoseError
     from ewb_ident.inference.fit_result import FitResult as FitResult

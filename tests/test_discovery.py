@@ -369,7 +369,7 @@ def test_a_learned_coefficients_posterior_does_not_depend_on_its_size():
     a million times smaller): the posterior samples the coefficient in units of its
     distilled size with the same prior, so it still centres on the refitted term."""
     from ewb_ident.diagnosis.corrected import fit_corrected
-    from ewb_ident.diagnosis.discovery import LearnedSpec
+    from ewb_ident.diagnosis.learned_spec import LearnedSpec
     from ewb_ident.inference.log_posterior import SamplerSettings
     from ewb_ident.inference.posterior import sample_corrected
 

@@ -314,7 +314,7 @@ def mechanism_option(
     with_: str | None, with_diagnosis: Path | None
 ) -> tuple[list[str], list] | None:
     """Catalog mechanism variants from --with and/or an earlier diagnosis, and the
-    diagnosis's learned terms (:class:`ewb_ident.diagnosis.discovery.LearnedSpec`);
+    diagnosis's learned terms (:class:`ewb_ident.diagnosis.learned_spec.LearnedSpec`);
     ``None``: neither option given."""
     if with_ is None and with_diagnosis is None:
         return None
@@ -323,7 +323,7 @@ def mechanism_option(
     if with_diagnosis is not None:
         import json
 
-        from ewb_ident.diagnosis.discovery import LearnedSpec, TermError
+        from ewb_ident.diagnosis.learned_spec import LearnedSpec, TermError
 
         path = with_diagnosis / "diagnosis.json" if with_diagnosis.is_dir() else with_diagnosis
         try:

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.trace import Trace
-from ewb_ident.diagnosis.discovery import LearnedSpec, TermError
+from ewb_ident.diagnosis.learned_spec import LearnedSpec, TermError
 from ewb_ident.diagnosis.session import (
     BIC_THRESHOLD,
     DiagnoseError,
@@ -211,7 +211,7 @@ class CorrectedFit:
     stderr_white: dict[str, float | None] = field(default_factory=dict)
     baseline_stderr_white: dict[str, float | None] = field(default_factory=dict)
     #: Each learned term refitted: ``place``, ``equation``, ``depends_on`` and its
-    #: ``basis`` (:meth:`~ewb_ident.diagnosis.discovery.LearnedSpec.to_json`).
+    #: ``basis`` (:meth:`~ewb_ident.diagnosis.learned_spec.LearnedSpec.to_json`).
     learned: tuple[dict[str, Any], ...] = ()
     #: What the model's predictions need beside the parameters (``omega_ref``, rad/s).
     context: dict[str, float] = field(default_factory=dict)

@@ -12,11 +12,11 @@ from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.discovery import (
     CLOSE,
     Discovery,
-    LearnedSpec,
     basis_matrix,
     learned_term,
 )
 from ewb_ident.diagnosis.inputs import physical
+from ewb_ident.diagnosis.learned_spec import LearnedSpec
 from ewb_ident.diagnosis.locate import (
     PHASES,
     Mismatch,

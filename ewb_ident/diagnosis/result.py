@@ -94,7 +94,7 @@ class Finding:
     heldout: dict[str, Any] = field(default_factory=dict)
     terms: tuple[dict[str, Any], ...] = ()
     reading: str = ""
-    #: The discovered term as data (:meth:`ewb_ident.diagnosis.discovery.LearnedSpec.to_json`),
+    #: The discovered term as data (:meth:`ewb_ident.diagnosis.learned_spec.LearnedSpec.to_json`),
     #: to refit it on a trace (``fit --with-diagnosis``).
     basis: dict[str, Any] = field(default_factory=dict)
     #: The discovered term per sample, in the place's unit, and its main input with
