@@ -290,6 +290,11 @@ def inputs_of(col: Column) -> tuple[str, ...]:
     return tuple(col.form[1:3]) if col.form[0] in PRODUCT else (col.signal,)
 
 
+def depends_of(columns: Sequence[Column]) -> tuple[str, ...]:
+    """The signals basis columns depend on, in order of first use."""
+    return tuple(dict.fromkeys(n for c in columns for n in inputs_of(c)))
+
+
 @dataclass(frozen=True)
 class Discovery:
     """What discovery found at one stage: the best place, its learned and distilled
@@ -320,7 +325,7 @@ class Discovery:
 
     @property
     def depends_on(self) -> tuple[str, ...]:
-        return tuple(dict.fromkeys(n for c in self.columns for n in inputs_of(c)))
+        return depends_of(self.columns)
 
     @property
     def equivalents(self) -> tuple[str, ...]:

@@ -12,7 +12,13 @@ import numpy as np
 
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import InputError
-from ewb_ident.diagnosis.discovery import Discovery, equation_of, inputs_of, learned_term
+from ewb_ident.diagnosis.discovery import (
+    Discovery,
+    depends_of,
+    equation_of,
+    inputs_of,
+    learned_term,
+)
 from ewb_ident.diagnosis.inputs import (
     PRODUCT,
     Column,
@@ -67,7 +73,7 @@ class LearnedSpec:
 
     @property
     def depends_on(self) -> tuple[str, ...]:
-        return tuple(dict.fromkeys(n for c in self.columns for n in inputs_of(c)))
+        return depends_of(self.columns)
 
     def to_json(self) -> dict[str, Any]:
         return {
