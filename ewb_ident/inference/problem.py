@@ -1,5 +1,6 @@
 """The least-squares problem of a stage or the whole chain: which channels and
-parameters a stage has, the residual function (an equinox module), and the solver call."""
+parameters a stage has, the residual function of every least-squares fit (an equinox
+module, :class:`Problem`, with or without mechanisms), and the solver call."""
 
 from __future__ import annotations
 
@@ -202,6 +203,7 @@ class Problem(eqx.Module):
         return preds
 
     def __call__(self, u: jnp.ndarray, data: dict) -> jnp.ndarray:
+        """Weighted residuals of the fitted channels, trace by trace (layout of :meth:`predict`)."""
         res = []
         for k, pred in enumerate(self.predict(u, data)):
             tr = data["traces"][k]
