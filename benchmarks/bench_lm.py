@@ -24,7 +24,7 @@ The sides.
     only, its program is the same).
 ``optimistix, problem static``
     ``optx.least_squares(problem, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12))``
-    on the fit's residual function (``StageProblem``, the stage and free set fixed in
+    on the fit's residual function (``Problem``, the stage and free set fixed in
     the program), the reference ``tests/test_fit.py`` uses: the solver is compiled
     whole, once per stage and free set.
 ``optimistix, problem as data``

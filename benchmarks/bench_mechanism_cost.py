@@ -27,6 +27,7 @@ from pathlib import Path
 os.environ.setdefault("EWB_IDENT_THREADS", "1")  # one thread: the times are one core's
 
 import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -71,8 +72,10 @@ def _compiled(f, u, data):
 
 
 def compare(problem, u, data) -> dict:
-    def residuals(v, d):
-        return problem(v, d)
+    def residuals(v, d):  # the weighted residuals alone
+        pred = problem.predict_trace(v, d)
+        chans = problem.channels[0]
+        return jnp.concatenate([(pred[ch] - d["meas"][ch]) * d["w"][ch] for ch in chans])
 
     def with_jacobian(v, d):  # the package's program: residuals, Jacobian, predictions
         return augmented._mechanism_program.__wrapped__(problem, v, d)
@@ -87,12 +90,12 @@ def compare(problem, u, data) -> dict:
             t0 = time.perf_counter()
             jax.block_until_ready(exe(u, data))
             times[k].append(time.perf_counter() - t0)
-    n = int(np.asarray(data["meas"][problem.channels[0]]).shape[0])
+    n = int(np.asarray(data["meas"][problem.channels[0][0]]).shape[0])
     return {
         "run": {k: statistics.median(v) for k, v in times.items()},
         "kernels": {k: kern for k, (_, kern, _) in exes.items()},
         "compile": {k: secs for k, (_, _, secs) in exes.items()},
-        "substeps": n * problem.n_sub,
+        "substeps": n * problem.n_sub[0],
         "tangents": int(np.asarray(u).size),
     }
 

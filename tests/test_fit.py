@@ -348,6 +348,25 @@ def test_one_levenberg_marquardt_serves_every_fit():
         assert "seed_levenberg_marquardt" not in path.read_text(encoding="utf-8"), path
 
 
+def test_one_problem_type_and_one_result_type():
+    """The seed model's fits and the fits with mechanisms or learned terms share one
+    problem type (``Problem``: ``specs`` empty for the seed model) and one result type
+    (``FitResult``: ``mechanisms`` empty for the seed model); the retired names are gone
+    from the package."""
+    import ewb_ident
+    from ewb_ident.inference import augmented, fit_result, problem
+
+    assert ewb_ident.FitResult is fit_result.FitResult
+    assert problem.Problem.__dataclass_fields__["specs"].default == ()
+    for module in (ewb_ident, augmented, fit_result, problem):
+        for name in ("AugProblem", "AugFit", "StageProblem"):
+            assert not hasattr(module, name), (module.__name__, name)
+    for path in Path(problem.__file__).parents[1].rglob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        for name in ("AugProblem", "AugFit", "StageProblem"):
+            assert name not in text, (path, name)
+
+
 @pytest.mark.parametrize("stage", ["motor", "gap", "force", "torque", "chain"])
 def test_one_program_predicts_each_stage_as_the_chain_evaluator_does(staircase, stage):
     """The fits' single compiled program picks each stage's input by data; its

@@ -22,10 +22,8 @@ from ewb_ident.diagnosis.session import (
     metrics_json,
     stage_order,
 )
-from ewb_ident.inference.augmented import (
-    AugFit,
-    fit_mechanisms,
-)
+from ewb_ident.inference.augmented import fit_mechanisms
+from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.log_posterior import CONTRACT_PARAMS
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.mechanisms.learned import LearnedTerm, term_at, with_bases
@@ -70,7 +68,7 @@ def corrected_record(trace: Trace, f0, f1, data, ev, notes, learned=()) -> Corre
         converged=bool(f1.converged),
         delta_bic=float(ev["delta_bic"]),
         warnings=tuple(notes),
-        predictions={k: np.asarray(v) for k, v in f1.predictions.items()},
+        predictions={k: np.asarray(v) for k, v in f1.predictions[0].items()},
         fit=f1,
         data=data,
         learned=tuple(learned),
@@ -84,7 +82,7 @@ def with_terms(data: dict[str, Any], trace: Trace, specs, values) -> dict[str, A
     return with_bases(data, {s.place: s.basis(s.signals_on(trace, values)) for s in specs})
 
 
-def _refitted(spec: LearnedSpec, f: AugFit) -> LearnedSpec:
+def _refitted(spec: LearnedSpec, f: FitResult) -> LearnedSpec:
     return replace(spec, coef=term_at(f.mechanisms, spec.place).coefficients)
 
 
@@ -138,12 +136,12 @@ def spread_notes(spread, stderr) -> list[str]:
     ]
 
 
-def model_tables(chain_fits: Sequence[AugFit], ok: bool) -> dict[str, dict]:
+def model_tables(chain_fits: Sequence[FitResult], ok: bool) -> dict[str, dict]:
     """Parameter values and standard errors of the baseline and the corrected chain."""
     if not ok or not chain_fits:
         return {}
 
-    def table(f: AugFit):
+    def table(f: FitResult):
         values = {k: float(v) for k, v in f.values.items()}
         for m in f.mechanisms:
             values |= {f"{m.variant}.{k}": float(v) for k, v in m.values().items()}
@@ -206,7 +204,7 @@ class CorrectedFit:
     delta_bic: float
     warnings: tuple[str, ...]
     predictions: dict[str, np.ndarray] = field(repr=False)
-    fit: AugFit | None = field(default=None, repr=False)
+    fit: FitResult | None = field(default=None, repr=False)
     data: dict[str, Any] | None = field(default=None, repr=False)
     stderr_white: dict[str, float | None] = field(default_factory=dict)
     baseline_stderr_white: dict[str, float | None] = field(default_factory=dict)

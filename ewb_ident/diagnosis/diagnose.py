@@ -103,10 +103,8 @@ from ewb_ident.diagnosis.session import (
     fitted_mechanism,
 )
 from ewb_ident.diagnosis.signatures import not_generalised
-from ewb_ident.inference.augmented import (
-    AugFit,
-    fit_mechanisms,
-)
+from ewb_ident.inference.augmented import fit_mechanisms
+from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.mechanisms.learned import term_at
 from ewb_ident.model.numerics import numerics
@@ -238,8 +236,8 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         noise=dict(ses.noise),
         checks_before=checks_before,
         checks_after=checks_after,
-        chain_before=dict(chain.fits[0].predictions) if chain.ok else {},
-        chain_after=dict(chain.fits[-1].predictions) if chain.ok else {},
+        chain_before=dict(chain.fits[0].predictions[0]) if chain.ok else {},
+        chain_after=dict(chain.fits[-1].predictions[0]) if chain.ok else {},
         labels=ses.labels,
         trace=trace,
         timings=timings,
@@ -299,7 +297,7 @@ class _Chain:
     data: Any = None
     free: tuple[str, ...] = ()
     sigma: Any = None
-    fits: list[AugFit] = field(default_factory=list)
+    fits: list[FitResult] = field(default_factory=list)
 
     @classmethod
     def baseline(cls, ses: Session, trace: Trace) -> _Chain:
@@ -310,7 +308,7 @@ class _Chain:
 
 
 #: One tried mechanism: its candidate record, its fit, evidence and fitted instance.
-_Tried = tuple[Candidate, AugFit, dict[str, float], AbstractMechanism]
+_Tried = tuple[Candidate, FitResult, dict[str, float], AbstractMechanism]
 
 
 @dataclass
@@ -320,11 +318,13 @@ class _Work:
     selected: list[AbstractMechanism] = field(default_factory=list)
     candidates: list[Candidate] = field(default_factory=list)
     evidence: dict[str, dict[str, float]] = field(default_factory=dict)
-    current: dict[str, AugFit] = field(default_factory=dict)  # stage -> latest fit of it
+    current: dict[str, FitResult] = field(default_factory=dict)  # stage -> latest fit of it
     last_round: list[_Tried] = field(default_factory=list)
     alternatives: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     #: Discovered terms: (discovery, its fit, evidence, the fitted term).
-    discoveries: list[tuple[Discovery, AugFit, dict[str, float], Any]] = field(default_factory=list)
+    discoveries: list[tuple[Discovery, FitResult, dict[str, float], Any]] = field(
+        default_factory=list
+    )
     #: Catalog names a discovered term at their stage outdid on held-out data.
     rivals: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)

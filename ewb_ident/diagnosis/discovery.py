@@ -375,7 +375,7 @@ def _linearised(ses, fit, place):
     n = ses.trace.n
     r, J, _ = residuals_and_jacobian(fit.problem, fit.u, ses.data)
     r, J = np.asarray(r, float), np.asarray(J, float)
-    chans = fit.problem.channels
+    chans = fit.problem.channels[0]
     n_pad = r.size // len(chans)
     effect = place_effect(place, fit.values, ses.trace)
     if not set(effect) & set(chans) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
@@ -661,7 +661,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     stage
         The located stage.
     fits_of
-        ``fits_of(stages) -> AugFit``: the current fit of a set of stages (with the
+        ``fits_of(stages) -> FitResult``: the current fit of a set of stages (with the
         catalog mechanisms selected there).
 
     Returns
@@ -749,7 +749,7 @@ def estimates(fit, step: np.ndarray, free_only: bool = True) -> dict[str, float]
     fit's optimiser coordinates, its free parameters first); with ``free_only`` False,
     its held ones too, at their values."""
     out = {} if free_only else {k: float(v) for k, v in fit.values.items() if k in PARAMS}
-    for j, name in enumerate(fit.problem.free):
+    for j, name in enumerate(fit.problem.shared):
         if name in PARAMS and j < step.size:
             dp = float(PARAMS[name].dp_du(float(fit.u[j]))) * float(step[j])
             out[name] = float(fit.values[name]) + dp

@@ -29,7 +29,8 @@ from ewb_ident.diagnosis.locate import (
 from ewb_ident.diagnosis.result import Finding
 from ewb_ident.diagnosis.session import SEPARATE, Session, bic_evidence, stage_order, stall_torque
 from ewb_ident.diagnosis.signatures import reading
-from ewb_ident.inference.augmented import AugFit, fit_mechanisms
+from ewb_ident.inference.augmented import fit_mechanisms
+from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.mechanisms.base import RESOLVED_Z, fmt_pm
 from ewb_ident.mechanisms.learned import PLACES, term_at, with_bases
@@ -69,14 +70,14 @@ def ranked_stages(ses: Session, current, still) -> list[str]:
     return sorted(excess, key=lambda s: -excess[s])
 
 
-def mechanism_start(m: AbstractMechanism, prev: AugFit) -> AbstractMechanism:
+def mechanism_start(m: AbstractMechanism, prev: FitResult) -> AbstractMechanism:
     for pm in prev.mechanisms:
         if pm.variant == m.variant:
             return pm
     return m
 
 
-def stderr_of(mech: AbstractMechanism, f: AugFit | None, ses: Session):
+def stderr_of(mech: AbstractMechanism, f: FitResult | None, ses: Session):
     for fit_ in [f, *ses.cache.values()]:
         if fit_ is None:
             continue
@@ -118,7 +119,7 @@ def _metric_words(ch: str, before, after) -> str:
     return f"{name} NRMSE {b:.2f} % → {a:.2f} %"
 
 
-def refitted_ctx(ses, fit_m: AugFit | None) -> dict[str, Any]:
+def refitted_ctx(ses, fit_m: FitResult | None) -> dict[str, Any]:
     """The session's facts, with the motor's stall torque from the fit that holds the
     finding (the baseline motor may have bent to absorb the missing physics)."""
     ctx = dict(ses.ctx)

@@ -222,8 +222,8 @@ def model_channels(ses, fit) -> dict[str, np.ndarray]:
     for st in fit.stages:
         if st == "motor":
             for ch in STAGE_OUTPUTS[st]:
-                if ch in fit.predictions:
-                    out[ch] = np.asarray(fit.predictions[ch], float)
+                if ch in fit.predictions[0]:
+                    out[ch] = np.asarray(fit.predictions[0][ch], float)
         elif st == "gap":
             th = leave_one_out(tr["theta_deg"], half)
             out["x_m"] = np.asarray(gap(th, v["p2"], v["p1"], v["p0"]))
@@ -241,8 +241,8 @@ def model_channels(ses, fit) -> dict[str, np.ndarray]:
         out["torque_Nm"] = np.asarray(brake_torque(out["force_N"], v["mu"], ses.trace.r_eff_m))
     mot = ses.base_fits.get("motor")
     if not tr.has("current_A") and "current_A" not in out:
-        if mot is not None and "current_A" in mot.predictions:
-            out["current_A"] = np.asarray(mot.predictions["current_A"], float)
+        if mot is not None and "current_A" in mot.predictions[0]:
+            out["current_A"] = np.asarray(mot.predictions[0]["current_A"], float)
     return out
 
 

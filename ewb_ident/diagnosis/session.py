@@ -27,11 +27,8 @@ from ewb_ident.diagnosis.locate import (
     coarsely_rounded,
     phase_labels,
 )
-from ewb_ident.inference.augmented import (
-    AugFit,
-    fit_mechanisms,
-    make_data,
-)
+from ewb_ident.inference.augmented import fit_mechanisms, make_data
+from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.least_squares import fit_checked_traces as fit_stage
 from ewb_ident.inference.least_squares import start_of_checked_trace as start_of
 from ewb_ident.inference.problem import default_free
@@ -124,7 +121,7 @@ class Session:
         #: Channels (inputs included) on a grid coarse against their noise.
         self.rounded = {ch for ch in self.cols if coarsely_rounded(trace[ch])}
         self.labels = phase_labels(trace)
-        self.cache: dict[tuple, AugFit] = {}
+        self.cache: dict[tuple, FitResult] = {}
         # Fits under way (a diagnosis tries its candidates side by side): a second
         # caller of the same fit waits for the first.
         self._pending: dict[tuple, Future] = {}
@@ -280,13 +277,13 @@ class Session:
         stages: Sequence[str],
         mechs: Sequence[AbstractMechanism],
         explore: Sequence[bool] | None = None,
-    ) -> AugFit:
+    ) -> FitResult:
         """The fit of ``stages`` with ``mechs`` (:func:`fit_mechanisms`), made once per
         session; callers in other threads that ask for it meanwhile wait for it."""
         stages = stage_order(stages)
         key = _key(stages, mechs)
 
-        def make() -> AugFit:
+        def make() -> FitResult:
             f = self._fit(stages, mechs, explore)
             with self._lock:
                 self.cache[key] = f
@@ -304,7 +301,7 @@ class Session:
         keep = (*MOTOR_PARAMS, "theta0_deg")
         return [{n: nominal[n] for n in self.free_of(stages) if n in nominal and n in keep}]
 
-    def _fit(self, stages, mechs, explore) -> AugFit:
+    def _fit(self, stages, mechs, explore) -> FitResult:
         free = self.free_of(stages)
         alt = self.nominal_starts(stages) if mechs else []
         return fit_mechanisms(
@@ -319,15 +316,15 @@ class Session:
             alt_starts=alt,
         )
 
-    def check(self, stage: str, f: AugFit) -> list[StageCheck]:
+    def check(self, stage: str, f: FitResult) -> list[StageCheck]:
         inp = STAGE_COLUMNS[stage][0] if stage in STAGE_COLUMNS else None
         out = []
         for ch in STAGE_OUTPUTS[stage]:
-            if ch in f.predictions and ch in self.sigma_tf:
+            if ch in f.predictions[0] and ch in self.sigma_tf:
                 rounded = inp in self.rounded or ch in self.rounded
                 out.append(
                     StageCheck(
-                        stage, ch, self.trace[ch], f.predictions[ch], self.sigma_tf[ch], rounded
+                        stage, ch, self.trace[ch], f.predictions[0][ch], self.sigma_tf[ch], rounded
                     )
                 )
         return out
@@ -349,9 +346,10 @@ def chain_baseline(ses: Session, messages: list[str]):
     return data, free, sigma, fit_mechanisms(data, ("chain",), free, (), tuple(sigma))
 
 
-def chain_metrics(trace: Trace, f: AugFit) -> dict[str, dict[str, float | None]]:
+def chain_metrics(trace: Trace, f: FitResult) -> dict[str, dict[str, float | None]]:
     """Metrics of a fit's predictions for the channels the trace records."""
-    return {ch: channel_metrics(p, trace[ch]) for ch, p in f.predictions.items() if trace.has(ch)}
+    preds = f.predictions[0]
+    return {ch: channel_metrics(p, trace[ch]) for ch, p in preds.items() if trace.has(ch)}
 
 
 def _safe_fit(trace: Trace, stage: str, messages: list[str], start=None):
@@ -369,8 +367,8 @@ def _safe_fit(trace: Trace, stage: str, messages: list[str], start=None):
 
 
 def bic_evidence(
-    f1: AugFit,
-    f0: AugFit,
+    f1: FitResult,
+    f0: FitResult,
     sigma: Mapping[str, np.ndarray],
     own: Sequence[str] | None = None,
 ) -> dict[str, float]:
@@ -391,10 +389,10 @@ def bic_evidence(
     dchi2 = rss0 - rss1
     # The explained share is judged on the mechanism's own channels (``own``): a fit
     # that spans more stages (with an earlier finding) carries their residuals too.
-    chans = [ch for ch in f0.residuals if own is None or ch in own] or list(f0.residuals)
+    chans = [ch for ch in f0.residuals[0] if own is None or ch in own] or list(f0.residuals[0])
     expected = ex0 = ex1 = 0.0
     for ch in chans:
-        e = f0.residuals[ch] / sigma[ch]
+        e = f0.residuals[0][ch] / sigma[ch]
         expected += e.size * float(np.clip(noise_sigma(e), *FLOOR_SCALE)) ** 2
         ex0 += float(f0.channel_rss[ch])
         ex1 += float(f1.channel_rss[ch])
@@ -415,11 +413,11 @@ def bic_evidence(
     }
 
 
-def _lag1(f: AugFit, sigma: Mapping[str, np.ndarray]) -> float:
+def _lag1(f: FitResult, sigma: Mapping[str, np.ndarray]) -> float:
     """Pooled lag-1 autocorrelation of ``f``'s weighted residuals, clipped to
     ``[0, RHO_MAX]``."""
     num = den = 0.0
-    for ch, r in f.residuals.items():
+    for ch, r in f.residuals[0].items():
         e = r / sigma[ch]
         e = e - np.mean(e)
         num += float(np.dot(e[1:], e[:-1]))
@@ -433,7 +431,7 @@ def chain_prefixed(ev: Mapping[str, float] | None) -> dict[str, float]:
     return {f"chain_{k}": ev[k] for k in keys} if ev else {}
 
 
-def fitted_mechanism(f: AugFit, variant: str) -> AbstractMechanism:
+def fitted_mechanism(f: FitResult, variant: str) -> AbstractMechanism:
     return next(m for m in f.mechanisms if m.variant == variant)
 
 

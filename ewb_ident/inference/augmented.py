@@ -17,17 +17,22 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ewb_ident.data.stages import CHANNELS, STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
-from ewb_ident.inference.problem import FORCED_CHANNEL, PROGRAM_COLUMNS, Z_NAMES, fit_program
+from ewb_ident.inference.fit_result import FitResult
+from ewb_ident.inference.problem import (
+    FORCED_CHANNEL,
+    PROGRAM_COLUMNS,
+    Z_NAMES,
+    Problem,
+    fit_program,
+)
 from ewb_ident.inference.solvers import (
     NormalEquationsDescent,
     RelativeDecrease,
@@ -38,7 +43,7 @@ from ewb_ident.inference.solvers import (
 from ewb_ident.inference.uncertainty import parameter_uncertainty
 from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
-from ewb_ident.model.predict import n_substeps, predict
+from ewb_ident.model.predict import n_substeps
 from ewb_ident.runtime.programs import FAST_COMPILE, on_device, pad_to, padded_length, program
 from ewb_ident.runtime.threads import parallel_map
 
@@ -151,46 +156,7 @@ def make_data(
     )
 
 
-class AugProblem(eqx.Module):
-    """Weighted residuals of the stages (or chain) with mechanisms, as a function of u."""
-
-    stages: tuple[str, ...] = eqx.field(static=True)
-    free: tuple[str, ...] = eqx.field(static=True)
-    specs: tuple[tuple[type, tuple], ...] = eqx.field(static=True)
-    channels: tuple[str, ...] = eqx.field(static=True)
-    n_sub: int = eqx.field(static=True)
-
-    def templates(self) -> list[AbstractMechanism]:
-        return [cls(**dict(cfg)) for cls, cfg in self.specs]
-
-    def build(self, u: jnp.ndarray, data: Mapping[str, Any]):
-        """Base parameters, start angle and mechanism instances for the vector ``u``."""
-        vals = dict(data["fixed"])
-        for j, name in enumerate(self.free):
-            vals[name] = PARAMS[name].to_physical(u[j])
-        j = len(self.free)
-        mechs = []
-        for tmpl in self.templates():
-            infos = tmpl.param_info()
-            mv = {info.name: info.to_physical(u[j + i]) for i, info in enumerate(infos)}
-            j += len(infos)
-            mechs.append(tmpl.with_values(mv))
-        p = EWBParams(**{n: vals[n] for n in MODEL_PARAMS})
-        return p, vals["theta0_deg"], tuple(mechs)
-
-    def predict(self, u: jnp.ndarray, data: Mapping[str, Any]) -> dict[str, jnp.ndarray]:
-        p, theta0, mechs = self.build(u, data)
-        stage = "chain" if self.stages == ("chain",) else self.stages
-        return predict(stage, p, theta0, mechs, data, self.n_sub)
-
-    def __call__(self, u: jnp.ndarray, data: Mapping[str, Any]) -> jnp.ndarray:
-        pred = self.predict(u, data)
-        return jnp.concatenate(
-            [(pred[ch] - data["meas"][ch]) * data["w"][ch] for ch in self.channels]
-        )
-
-
-def residuals(problem: AugProblem, u, data):
+def residuals(problem: Problem, u, data):
     """Weighted residuals at ``u``: from the compiled residuals-and-Jacobian program (a
     program of the residuals alone would be a second compilation per mechanism set, a
     quarter of a diagnosis's compile time, for a saving of well under a millisecond
@@ -198,7 +164,7 @@ def residuals(problem: AugProblem, u, data):
     return residuals_and_jacobian(problem, u, data)[0]
 
 
-def residuals_and_jacobian(problem: AugProblem, u, data):
+def residuals_and_jacobian(problem: Problem, u, data):
     """Residuals, their Jacobian (forward mode) and the predictions, in one pass.
 
     Without mechanisms the problem is the seed model's, and the seed fits' one program
@@ -210,9 +176,9 @@ def residuals_and_jacobian(problem: AugProblem, u, data):
     return _mechanism_program(problem, u, data)
 
 
-def _seed_residuals_and_jacobian(problem: AugProblem, u, data):
+def _seed_residuals_and_jacobian(problem: Problem, u, data):
     u = np.asarray(u, float)
-    cols = [Z_NAMES.index(n) for n in problem.free]
+    cols = [Z_NAMES.index(n) for n in problem.shared]
     z = np.zeros(len(Z_NAMES))
     z[cols] = u
     meas = data["meas"]
@@ -222,16 +188,16 @@ def _seed_residuals_and_jacobian(problem: AugProblem, u, data):
     pdata = on_device(
         {
             "meas": {c: meas.get(c, zeros) for c in PROGRAM_COLUMNS},
-            "w": {c: data["w"][c] if c in problem.channels else zeros for c in CHANNELS},
+            "w": {c: data["w"][c] if c in problem.channels[0] else zeros for c in CHANNELS},
             "forced": {c: float(s in forced) for s, c in FORCED_CHANNEL.items()},
             "dt": data["dt"],
             "r_eff": data["r_eff"],
             "fixed": np.array([float(data["fixed"][n]) for n in Z_NAMES]),
-            "free": np.array([float(n in problem.free) for n in Z_NAMES]),
+            "free": np.array([float(n in problem.shared) for n in Z_NAMES]),
         }
     )
-    ((r, J, pred),) = fit_program((problem.n_sub,), "exponential", z[None, :], [pdata])
-    rows = [CHANNELS.index(ch) for ch in problem.channels]
+    ((r, J, pred),) = fit_program(problem.n_sub, problem.method, z[None, :], [pdata])
+    rows = [CHANNELS.index(ch) for ch in problem.channels[0]]
     r, J = np.asarray(r)[rows], np.asarray(J)[rows][..., cols]
     outputs = CHANNELS if problem.stages == ("chain",) else [
         ch for s in problem.stages for ch in STAGE_OUTPUTS[s]
@@ -240,11 +206,11 @@ def _seed_residuals_and_jacobian(problem: AugProblem, u, data):
 
 
 @program(options=FAST_COMPILE)
-def _mechanism_program(problem: AugProblem, u, data):
+def _mechanism_program(problem: Problem, u, data):
     def f(v):
-        pred = problem.predict(v, data)
+        pred = problem.predict_trace(v, data)
         r = jnp.concatenate(
-            [(pred[ch] - data["meas"][ch]) * data["w"][ch] for ch in problem.channels]
+            [(pred[ch] - data["meas"][ch]) * data["w"][ch] for ch in problem.channels[0]]
         )
         return r, (r, pred)
 
@@ -252,67 +218,8 @@ def _mechanism_program(problem: AugProblem, u, data):
     return r, J, pred
 
 
-def jacobian(problem: AugProblem, u, data):
+def jacobian(problem: Problem, u, data):
     return residuals_and_jacobian(problem, u, data)[1]
-
-
-@dataclass(frozen=True)
-class AugFit:
-    """The outcome of one fit with mechanisms (immutable).
-
-    Attributes
-    ----------
-    stages
-        The fitted teacher-forced stages, or ``("chain",)``.
-    mechanisms
-        The fitted mechanism instances (plain float values).
-    values
-        Base parameter values (SI) and ``theta0_deg``.
-    stderr
-        Standard errors (SI) of the free base parameters (by name) and of the
-        mechanisms' parameters (``"variant.param"``); ``None`` where not identified.
-        The larger of the white-residual and the serial-correlation-robust one.
-    rss
-        Sum of squared weighted residuals.
-    n
-        Number of residuals (samples times channels).
-    k
-        Number of fitted parameters.
-    channel_rss
-        ``rss`` split by channel.
-    converged
-        Whether the solver reported success.
-    predictions
-        The model's fitted channels (NumPy, trace length).
-    residuals
-        Measured minus predicted, per compared channel.
-    u, problem
-        The solver's unconstrained optimum and the residual function it minimised
-        (a posterior starts from them).
-    stderr_white
-        The standard errors if the residuals were white, keyed as ``stderr``.
-    """
-
-    stages: tuple[str, ...]
-    mechanisms: tuple[AbstractMechanism, ...]
-    values: dict[str, float]
-    stderr: dict[str, float | None]
-    rss: float
-    n: int
-    k: int
-    channel_rss: dict[str, float]
-    converged: bool
-    predictions: dict[str, np.ndarray] = field(repr=False)
-    residuals: dict[str, np.ndarray] = field(repr=False)
-    u: np.ndarray = field(repr=False)
-    problem: AugProblem = field(repr=False)
-    stderr_white: dict[str, float | None] = field(default_factory=dict, repr=False)
-
-    def mechanism_stderr(self, m: AbstractMechanism) -> dict[str, float | None]:
-        """White-residual standard errors of one fitted mechanism's parameters: what the
-        diagnosis's tests (a finding's parameter resolved from no effect) were set on,
-        and what its words quote; the reported tables use :attr:`stderr`."""
-        return {i.name: self.stderr_white.get(f"{m.variant}.{i.name}") for i in m.param_info()}
 
 
 def fit_mechanisms(
@@ -328,7 +235,7 @@ def fit_mechanisms(
     alt_starts: Sequence[Mapping[str, float]] = (),
     max_steps: int = 200,
     n_best: int = 2,
-) -> AugFit:
+) -> FitResult:
     """Fit base parameters ``free`` and every mechanism parameter by least squares.
 
     Parameters
@@ -365,12 +272,13 @@ def fit_mechanisms(
     stages = tuple(stages)
     mechs = tuple(mechanisms)
     dt = float(data["dt"])
-    problem = AugProblem(
+    problem = Problem(
         stages=stages,
-        free=tuple(free),
+        shared=tuple(free),
+        per_trace=(),
+        channels=(tuple(channels),),
+        n_sub=(n_substeps(dt, mechs),),
         specs=tuple((type(m), m.static_config()) for m in mechs),
-        channels=tuple(channels),
-        n_sub=n_substeps(dt, mechs),
     )
     base = {k: float(v) for k, v in data["fixed"].items()} | dict(start or {})
     bases = [base] + [base | dict(a) for a in alt_starts]
@@ -385,7 +293,7 @@ def fit_mechanisms(
     combos = list(itertools.islice(itertools.product(*options), MAX_STARTS))
     us, group = [], []
     for g, b in enumerate(bases):
-        u_base = [clipped_to_u(PARAMS[n], b[n]) for n in problem.free]
+        u_base = [clipped_to_u(PARAMS[n], b[n]) for n in problem.shared]
         for combo in combos:
             u = list(u_base)
             for m, vals in zip(mechs, combo, strict=True):
@@ -423,7 +331,7 @@ def fit_mechanisms(
     # Residuals that count (nonzero weight): a converged fit with a cost no larger (reduced
     # chi-square at most 1 under the fit's noise weights) explains the data to the noise,
     # and the alternatives' starts, there for a fit caught in another valley, are not run.
-    n_res = sum(int(np.count_nonzero(np.asarray(data["w"][ch]))) for ch in problem.channels)
+    n_res = sum(int(np.count_nonzero(np.asarray(data["w"][ch]))) for ch in problem.channels[0])
     screened = {i: screened[i] for i in order if i in screened}
 
     def solve(i):
@@ -458,7 +366,7 @@ def fit_mechanisms(
     if best is None:  # every start failed: keep the best start point
         i = int(order[0])
         best = Solution(us[i], float(costs[i]), Status.FAILED, 0)
-    return _result(problem, best.u, data, best.converged, mechs, best.at)
+    return _result(problem, data, best)
 
 
 def clipped_to_u(info, value: float) -> float:
@@ -478,49 +386,54 @@ def clipped_to_u(info, value: float) -> float:
 LOG_FLOOR = 1e-12
 
 
-def _result(problem: AugProblem, u, data, ok, templates, at=None) -> AugFit:
-    """The fit at ``u``; ``at``: the residuals, Jacobian and predictions there if the
-    solver kept them."""
-    n = int(data["n"])
+def _result(problem: Problem, data, best: Solution) -> FitResult:
+    """The fit at ``best.u``, from the residuals, Jacobian and predictions there if the
+    solver kept them (``best.at``)."""
+    u, n = best.u, int(data["n"])
+    at = best.at
     if at is None:
         at = residuals_and_jacobian(problem, np.asarray(u, float), data)
     r, J, pred_all = at
     r, J = np.asarray(r), np.asarray(J)
     rss = float(np.sum(r * r))
-    nch = len(problem.channels)
+    channels = problem.channels[0]
+    nch = len(channels)
     n_res = n * nch
     chan_rss = {}
-    for j, ch in enumerate(problem.channels):
+    for j, ch in enumerate(channels):
         seg = r[j * r.size // nch : (j + 1) * r.size // nch]
         chan_rss[ch] = float(np.sum(seg * seg))
-    k = J.shape[1]
     u_np = np.asarray(u)
-    infos = [PARAMS[n_] for n_ in problem.free]
-    names = list(problem.free)
+    infos = [PARAMS[n_] for n_ in problem.shared]
+    names = list(problem.shared)
     for tmpl in problem.templates():
         for info in tmpl.param_info():
             infos.append(info)
             names.append(f"{tmpl.variant}.{info.name}")
     unc = parameter_uncertainty(J, r, u_np, infos, [(nch, r.size // nch)], n=n_res)
-    p, theta0, mechs = problem.build(np.asarray(u, float), data)
+    p, theta0, mechs = problem.build(np.asarray(u, float), data["fixed"])
     pred = {ch: np.asarray(v)[:n] for ch, v in pred_all.items()}
-    values = {name: float(getattr(p, name)) for name in MODEL_PARAMS}
-    values["theta0_deg"] = float(theta0)
     plain = tuple(m.with_values(m.values()) for m in mechs)
-    resid = {ch: np.asarray(data["meas"][ch])[:n] - pred[ch] for ch in problem.channels}
-    return AugFit(
-        stages=problem.stages,
-        mechanisms=plain,
-        values=values,
+    resid = {ch: np.asarray(data["meas"][ch])[:n] - pred[ch] for ch in channels}
+    return FitResult(
+        free=problem.shared,
+        per_trace=(),
+        params=(EWBParams(**{name: float(getattr(p, name)) for name in MODEL_PARAMS}),),
+        theta0_deg=(float(theta0),),
         stderr=dict(zip(names, unc.stderr, strict=True)),
         stderr_white=dict(zip(names, unc.stderr_white, strict=True)),
+        corr=unc.corr,
+        corr_names=tuple(names),
+        condition_number=unc.condition_number,
         rss=rss,
         n=n_res,
-        k=k,
-        channel_rss=chan_rss,
-        converged=bool(ok),
-        predictions=pred,
-        residuals=resid,
+        converged=best.converged,
+        message="successful" if best.converged else best.detail or best.status.name.lower(),
+        n_steps=best.steps,
+        predictions=(pred,),
+        residuals=(resid,),
         u=u_np,
         problem=problem,
+        mechanisms=plain,
+        channel_rss=chan_rss,
     )

@@ -12,7 +12,8 @@ from ewb_ident.data.metrics import (
     SEED_PERCENT_ERROR,
 )
 from ewb_ident.data.outputs import null_nonfinite
-from ewb_ident.inference.problem import StageProblem
+from ewb_ident.inference.problem import Problem
+from ewb_ident.mechanisms.base import AbstractMechanism
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 
 # ----------------------------------------------------------------------------- results
@@ -20,36 +21,71 @@ from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 
 @dataclass(frozen=True)
 class FitResult:
-    """The outcome of a least-squares fit (immutable).
+    """The outcome of a least-squares fit (immutable): of the seed model (a stage or
+    the chain, :func:`ewb_ident.inference.least_squares.fit`) or with catalog mechanisms
+    or learned terms (:func:`ewb_ident.inference.augmented.fit_mechanisms`, the
+    diagnosis's fits; one trace).
 
     Attributes
     ----------
-    stage
-        What was fitted (see module docstring).
-    trace_names
-        Names of the fitted traces, in order.
     free, per_trace
-        Names of the varied parameters; ``per_trace`` ones were fitted per trace.
+        Names of the varied base parameters; ``per_trace`` ones were fitted per trace.
     params
         Fitted parameters for each trace (SI units).
     theta0_deg
         Start angle of each trace, degrees.
     stderr
         Standard error of each free shared parameter (SI units); for per-trace ones
-        ``"name[k]"`` keys. ``None`` where the Jacobian gives none. The larger of the
-        white-residual and the serial-correlation-robust one
-        (:mod:`ewb_ident.inference.uncertainty`).
+        ``"name[k]"`` keys, for a term's ``"variant.param"``. ``None`` where the
+        Jacobian gives none. The larger of the white-residual and the
+        serial-correlation-robust one (:mod:`ewb_ident.inference.uncertainty`).
     corr
         Correlation matrix of the free coordinates, ordered as ``corr_names``.
     condition_number
         Condition number of the column-scaled Jacobian at the optimum.
+    rss
+        Sum of squared weighted residuals at the optimum (``cost`` is half of it).
+    n
+        Number of residuals (samples times channels) that count.
+    converged
+        Whether the solver reported success on every solve.
+    message
+        The solver's result, in words.
+    n_steps
+        Solver steps, summed over the solves.
+    predictions
+        The model's prediction of every fitted channel, per trace (NumPy arrays); a fit
+        with terms gives every channel its stages predict.
+    residuals
+        Measured minus predicted, per trace and fitted channel (NumPy arrays).
+    u
+        The solution in unconstrained coordinates (shared parameters, then the
+        per-trace ones trace by trace, then the terms'), as ``corr_names`` orders them.
+    problem, data
+        The residual function (:class:`~ewb_ident.inference.problem.Problem`) and, for a
+        seed fit, its data (measured channels, weights ``sigma``, fixed values):
+        ``problem(u, data)`` gives the weighted residuals and ``problem.predict(u, data)``
+        the model's channels. The posterior starts here. A fit with terms keeps no
+        data (its caller holds them; ``problem.predict_trace`` reads them).
+    stderr_white
+        The standard errors if the residuals were white (``s^2 (J^T J)^-1``), keyed as
+        ``stderr``: never larger than ``stderr``.
+    mechanisms
+        The fitted terms (catalog mechanisms or learned terms, plain float values);
+        empty for the seed model.
+    channel_rss
+        ``rss`` split by channel (fits with terms; empty for seed fits).
+
+    The rest describe a seed fit for its report (empty, or ``acceptable`` True, for a
+    fit with terms, which the diagnosis judges by its evidence):
+
+    trace_names
+        Names of the fitted traces, in order.
     metrics, trace_metrics
         Pooled and per-trace metrics per channel (see :mod:`ewb_ident.data.metrics`).
     noise, sigma
         Per trace and channel: the sensor-noise estimate from the data, and the noise
         level the final weights used (from the residuals), in the channel's unit.
-    converged
-        Whether the solver reported success on every solve.
     r_eff
         Per trace, the pad radius used (m) and where it came from (``--r-eff``,
         ``sidecar`` or ``default``).
@@ -59,24 +95,8 @@ class FitResult:
         the seed paper's 10 % (:data:`ewb_ident.data.metrics.SEED_ACCEPTANCE_PCT`). A channel
         missing its noise floor by more than :data:`MISFIT_RATIO` is a warning, not a
         rejection (the diagnosis explains it).
-    message
-        The solver's result, in words.
-    n_steps
-        Solver steps, summed over the solves.
     warnings
         Plain-language warnings (identifiability, solver), for the user to read.
-    predictions
-        The model's prediction of every fitted channel, per trace (NumPy arrays).
-    u
-        The solution in unconstrained coordinates (shared parameters, then the
-        per-trace ones trace by trace), as ``corr_names`` orders them.
-    problem, data
-        The residual function and its data (measured channels, weights ``sigma``,
-        fixed values): ``problem(u, data)`` gives the weighted residuals and
-        ``problem.predict(u, data)`` the model's channels. The posterior starts here.
-    stderr_white
-        The standard errors if the residuals were white (``s^2 (J^T J)^-1``), keyed as
-        ``stderr``: never larger than ``stderr``.
     misfits
         Those of ``warnings`` that name a channel missing its noise floor by more than
         :data:`MISFIT_RATIO` (physics the model leaves out, or a logger's noise): a
@@ -84,8 +104,6 @@ class FitResult:
         that does not reproduce the trace.
     """
 
-    stage: str
-    trace_names: tuple[str, ...]
     free: tuple[str, ...]
     per_trace: tuple[str, ...]
     params: tuple[EWBParams, ...]
@@ -94,23 +112,54 @@ class FitResult:
     corr: np.ndarray
     corr_names: tuple[str, ...]
     condition_number: float
-    metrics: dict[str, dict[str, float | None]]
-    trace_metrics: tuple[dict[str, dict[str, float | None]], ...]
-    noise: tuple[dict[str, float], ...]
-    sigma: tuple[dict[str, float], ...]
+    rss: float
+    n: int
     converged: bool
-    acceptable: bool
-    r_eff: tuple[tuple[float, str], ...]
     message: str
     n_steps: int
-    cost: float
-    warnings: tuple[str, ...]
     predictions: tuple[dict[str, np.ndarray], ...] = field(repr=False)
+    residuals: tuple[dict[str, np.ndarray], ...] = field(repr=False)
     u: np.ndarray = field(repr=False)
-    problem: StageProblem = field(repr=False)
-    data: dict = field(repr=False)
+    problem: Problem = field(repr=False)
     stderr_white: dict[str, float | None] = field(default_factory=dict, repr=False)
+    mechanisms: tuple[AbstractMechanism, ...] = ()
+    channel_rss: dict[str, float] = field(default_factory=dict)
+    trace_names: tuple[str, ...] = ()
+    metrics: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    trace_metrics: tuple[dict[str, dict[str, float | None]], ...] = ()
+    noise: tuple[dict[str, float], ...] = ()
+    sigma: tuple[dict[str, float], ...] = ()
+    acceptable: bool = True
+    r_eff: tuple[tuple[float, str], ...] = ()
+    warnings: tuple[str, ...] = ()
+    data: dict = field(default_factory=dict, repr=False)
     misfits: tuple[str, ...] = field(default=(), repr=False)
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        """The fitted teacher-forced stages, or ``("chain",)``."""
+        return self.problem.stages
+
+    @property
+    def stage(self) -> str:
+        """What was fitted: ``"chain"``, a stage, or stages joined by ``+``."""
+        return "+".join(self.problem.stages)
+
+    @property
+    def k(self) -> int:
+        """Number of fitted parameters."""
+        return int(np.size(self.u))
+
+    @property
+    def cost(self) -> float:
+        """Half the weighted residual sum of squares (``inf`` if not finite)."""
+        return 0.5 * self.rss if np.isfinite(self.rss) else float("inf")
+
+    def mechanism_stderr(self, m: AbstractMechanism) -> dict[str, float | None]:
+        """White-residual standard errors of one fitted mechanism's parameters: what the
+        diagnosis's tests (a finding's parameter resolved from no effect) were set on,
+        and what its words quote; the reported tables use :attr:`stderr`."""
+        return {i.name: self.stderr_white.get(f"{m.variant}.{i.name}") for i in m.param_info()}
 
     @property
     def status(self) -> str:
@@ -147,6 +196,7 @@ class FitResult:
                     "residual_sigma": self.sigma[k],
                 }
             )
+
         def keyed(errors: dict[str, float | None]) -> dict[str, float | None]:
             out = {n: errors.get(n) for n in values}
             if len(self.params) == 1:

@@ -455,7 +455,6 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
     acceptable, judged, misfits = _judge(setup, params, trace_metrics, pooled)
     notes += judged
     return FitResult(
-        stage=setup.stage,
         trace_names=tuple(t.name for t in traces),
         free=setup.free,
         per_trace=setup.per_trace,
@@ -474,10 +473,12 @@ def _finish(setup: Setup, u, data, sigma, results, steps, max_steps) -> FitResul
         r_eff=tuple((t.r_eff_m, t.r_eff_source) for t in traces),
         message=message,
         n_steps=steps,
-        cost=float(0.5 * np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),
+        rss=float(np.sum(r * r)) if np.all(np.isfinite(r)) else float("inf"),
+        n=int(r.size),
         warnings=tuple(notes),
         misfits=tuple(misfits),
         predictions=tuple(preds),
+        residuals=tuple({c: t[c] - p[c] for c in p} for t, p in zip(traces, preds, strict=True)),
         u=u,
         problem=problem,
         data={k: v for k, v in data.items() if k != "program"},

@@ -19,7 +19,7 @@ from ewb_ident.data.trace import InputError
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.memory import physical_memory
 from ewb_ident.inference.priors import Prior, param_info
-from ewb_ident.inference.problem import StageProblem
+from ewb_ident.inference.problem import Problem
 from ewb_ident.model.params import ParamInfo
 from ewb_ident.runtime.programs import on_device, program
 
@@ -230,7 +230,7 @@ def _ar1_q(r: jnp.ndarray, phi: jnp.ndarray) -> jnp.ndarray:
 class _LogPost(eqx.Module):
     """Log posterior of the unconstrained vector ``u`` (noise levels marginalised)."""
 
-    problems: tuple[StageProblem, ...]
+    problems: tuple[Problem, ...]
     datas: tuple[dict, ...]
     phi: jnp.ndarray
     slices: tuple[tuple[int, int], ...] = eqx.field(static=True)

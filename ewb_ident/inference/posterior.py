@@ -310,14 +310,14 @@ class _AugChain(eqx.Module):
     channels: tuple[tuple[str, ...], ...] = eqx.field(static=True)
 
     def predict(self, u: jnp.ndarray, data: Mapping[str, Any]) -> list[dict[str, jnp.ndarray]]:
-        pred = self.problem.predict(u, data["aug"])
+        pred = self.problem.predict_trace(u, data["aug"])
         return [{ch: pred[ch][: self.n] for ch in self.channels[0]}]
 
 
 @dataclass(frozen=True)
 class _CorrectedStart:
     """The corrected least-squares fit as the start of a posterior: what :func:`build`
-    and :func:`walker_starts` read from a :class:`~ewb_ident.inference.least_squares.FitResult`."""
+    and :func:`walker_starts` read from a :class:`~ewb_ident.inference.fit_result.FitResult`."""
 
     trace_names: tuple[str, ...]
     corr_names: tuple[str, ...]
@@ -349,10 +349,10 @@ def _corrected_start(trace: Trace, cf) -> _CorrectedStart:
     from ewb_ident.inference.augmented import residuals_and_jacobian
 
     f, aug, n = cf.fit, cf.data, trace.n
-    names = list(f.problem.free) + [
+    names = list(f.problem.shared) + [
         f"{m.variant}.{i.name}" for m in f.problem.templates() for i in m.param_info()
     ]
-    chans = tuple(f.problem.channels)
+    chans = f.problem.channels[0]
     J = np.asarray(residuals_and_jacobian(f.problem, jnp.asarray(f.u), aug)[1])
     cov = np.linalg.pinv(J.T @ J)
     sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
@@ -371,5 +371,5 @@ def _corrected_start(trace: Trace, cf) -> _CorrectedStart:
         stderr=_sampled_stderr(f, names),
         problem=_AugChain(f.problem, n, (chans,)),
         data=data,
-        predictions=[{ch: np.asarray(f.predictions[ch]) for ch in chans}],
+        predictions=[{ch: np.asarray(f.predictions[0][ch]) for ch in chans}],
     )

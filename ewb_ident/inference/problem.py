@@ -1,5 +1,6 @@
 """The least-squares problem of a stage or the whole chain: which channels and
-parameters a stage has, the residual function (an equinox module), and the solver call."""
+parameters a stage has, the residual function of every least-squares fit (an equinox
+module, :class:`Problem`, with or without mechanisms), and the solver call."""
 
 from __future__ import annotations
 
@@ -130,21 +131,36 @@ def structural_notes(stage: str, traces: Sequence[Trace], free: Sequence[str]) -
 # ----------------------------------------------------------------------------- problem
 
 
-class StageProblem(eqx.Module):
-    """Weighted residuals of one fit as a function of the unconstrained vector ``u``.
+class Problem(eqx.Module):
+    """Weighted residuals of one least-squares fit as a function of the unconstrained
+    vector ``u``: the seed model's stage and chain fits, and the fits with catalog
+    mechanisms or learned terms (``specs``; empty for the seed model).
 
-    All configuration is static (hashable), so solving the same problem on new data of
-    the same shapes reuses the compiled code.
+    ``u`` holds the ``shared`` parameters, then the ``per_trace`` ones trace by trace,
+    then each term's parameters as it declares them. All configuration is static
+    (hashable), so solving the same problem on new data of the same shapes reuses the
+    compiled code.
+
+    Two layouts of data are read: :meth:`predict` and ``__call__`` the fit data of
+    several traces (:meth:`Setup.data`: ``traces``, each with its measured columns, ``dt``,
+    ``r_eff_m``, ``theta0_deg`` and ``sigma``, and ``fixed``); :meth:`predict_trace` one
+    trace's data as :func:`ewb_ident.model.predict.predict` reads it, with ``fixed``
+    (:func:`ewb_ident.inference.augmented.make_data`, padded, per-sample weights).
     """
 
-    stage: str = eqx.field(static=True)
+    stages: tuple[str, ...] = eqx.field(static=True)
     shared: tuple[str, ...] = eqx.field(static=True)
     per_trace: tuple[str, ...] = eqx.field(static=True)
     channels: tuple[tuple[str, ...], ...] = eqx.field(static=True)
     n_sub: tuple[int, ...] = eqx.field(static=True)
-    method: str = eqx.field(static=True)
+    method: str = eqx.field(static=True, default="exponential")
+    specs: tuple[tuple[type, tuple], ...] = eqx.field(static=True, default=())
 
-    def values(self, u: jnp.ndarray, base: dict, k: int) -> dict[str, jnp.ndarray]:
+    def templates(self) -> list:
+        """The terms (mechanism instances at their class's values), in ``u``'s order."""
+        return [cls(**dict(cfg)) for cls, cfg in self.specs]
+
+    def values(self, u: jnp.ndarray, base: Mapping, k: int = 0) -> dict[str, jnp.ndarray]:
         """Parameter values (SI) for trace ``k``: fixed ones from ``base``, free from u."""
         out = dict(base)
         for j, name in enumerate(self.shared):
@@ -154,21 +170,40 @@ class StageProblem(eqx.Module):
             out[name] = PARAMS[name].to_physical(u[offset + j])
         return out
 
+    def terms(self, u: jnp.ndarray) -> tuple:
+        """The terms with their parameters from ``u``."""
+        j = len(self.shared) + len(self.n_sub) * len(self.per_trace)
+        out = []
+        for tmpl in self.templates():
+            infos = tmpl.param_info()
+            vals = {info.name: info.to_physical(u[j + i]) for i, info in enumerate(infos)}
+            out.append(tmpl.with_values(vals))
+            j += len(infos)
+        return tuple(out)
+
+    def build(self, u: jnp.ndarray, fixed: Mapping, k: int = 0):
+        """Base parameters, start angle and terms of trace ``k`` for the vector ``u``."""
+        vals = self.values(u, fixed, k)
+        p = EWBParams(**{n: vals[n] for n in MODEL_PARAMS})
+        return p, vals["theta0_deg"], self.terms(u)
+
+    def predict_trace(self, u: jnp.ndarray, d: Mapping, k: int = 0) -> dict[str, jnp.ndarray]:
+        """The model's channels of trace ``k`` from its data ``d`` (with ``d["fixed"]``)."""
+        p, theta0, terms = self.build(u, d["fixed"], k)
+        stage = self.stages[0] if len(self.stages) == 1 else self.stages
+        return predict(stage, p, theta0, terms, d, self.n_sub[k], self.method)
+
     def predict(self, u: jnp.ndarray, data: dict) -> list[dict[str, jnp.ndarray]]:
         """The model's prediction of each fitted channel, per trace."""
         preds = []
         for k, tr in enumerate(data["traces"]):
-            base = dict(data["fixed"]) | {"theta0_deg": tr["theta0_deg"]}
-            vals = self.values(u, base, k)
-            p = EWBParams(**{n: vals[n] for n in MODEL_PARAMS})
-            preds.append(self._predict_one(p, vals["theta0_deg"], tr, self.n_sub[k]))
+            fixed = dict(data["fixed"]) | {"theta0_deg": tr["theta0_deg"]}
+            d = {"meas": tr, "dt": tr["dt"], "r_eff": tr["r_eff_m"], "fixed": fixed}
+            preds.append(self.predict_trace(u, d, k))
         return preds
 
-    def _predict_one(self, p: EWBParams, theta0, tr: dict, n_sub: int) -> dict:
-        d = {"meas": tr, "dt": tr["dt"], "r_eff": tr["r_eff_m"]}
-        return predict(self.stage, p, theta0, (), d, n_sub, self.method)
-
     def __call__(self, u: jnp.ndarray, data: dict) -> jnp.ndarray:
+        """Weighted residuals of the fitted channels, trace by trace (layout of :meth:`predict`)."""
         res = []
         for k, pred in enumerate(self.predict(u, data)):
             tr = data["traces"][k]
@@ -235,12 +270,12 @@ def fit_program(n_sub: tuple[int, ...], method: str, Z, traces):
     return out
 
 
-def program_data(problem: StageProblem, tdata: Sequence[dict], sigma, base: dict) -> list[dict]:
+def program_data(problem: Problem, tdata: Sequence[dict], sigma, base: dict) -> list[dict]:
     """What :func:`fit_program` reads of each trace, padded to
     :func:`~ewb_ident.runtime.programs.padded_length`: the columns, the weights of the
     fitted channels, the teacher-forcing flags, the fixed values and the free mask."""
     out = []
-    forced_ch = FORCED_CHANNEL.get(problem.stage)
+    forced_ch = FORCED_CHANNEL.get(problem.stages[0])
     for k, (d, s) in enumerate(zip(tdata, sigma, strict=True)):
         n = _length(d)
         n_pad = padded_length(n)
@@ -275,7 +310,7 @@ def _length(d: dict) -> int:
     return next(int(np.asarray(v).shape[0]) for c, v in d.items() if c in PROGRAM_COLUMNS)
 
 
-def _columns(problem: StageProblem, n_traces: int) -> np.ndarray:
+def _columns(problem: Problem, n_traces: int) -> np.ndarray:
     """For each trace and each :data:`Z_NAMES` coordinate, its index in ``u`` (-1:
     fixed), shape (traces, coordinates)."""
     cols = np.full((n_traces, len(Z_NAMES)), -1)
@@ -288,7 +323,7 @@ def _columns(problem: StageProblem, n_traces: int) -> np.ndarray:
     return cols
 
 
-def evaluate(problem: StageProblem, u, data: dict, predictions: bool = True):
+def evaluate(problem: Problem, u, data: dict, predictions: bool = True):
     """Weighted residuals (fitted channels, trace by trace), the predictions of every
     channel per trace (``None`` unless ``predictions``), and the Jacobian with respect
     to ``u``, at ``u``.
@@ -474,7 +509,7 @@ class Setup:
     per_trace: tuple[str, ...]
     base: EWBParams
     channels: tuple[tuple[str, ...], ...]
-    problem: StageProblem
+    problem: Problem
     tdata: list[dict]
     noise: tuple[dict[str, float], ...]
     notes: tuple[str, ...]
@@ -523,8 +558,8 @@ def build_setup(traces, stage, free, per_trace, fixed, integrator) -> Setup:
                 f"{rho:.3g} > 1): the simulation diverges; use the exponential integrator"
             )
     channels = tuple(stage_channels(stage, t) for t in traces)
-    problem = StageProblem(
-        stage=stage,
+    problem = Problem(
+        stages=(stage,),
         shared=tuple(n for n in free_t if n not in pt),
         per_trace=pt,
         channels=channels,
@@ -547,7 +582,7 @@ def build_setup(traces, stage, free, per_trace, fixed, integrator) -> Setup:
     )
 
 
-def to_u(problem: StageProblem, values: Mapping[str, float], base: EWBParams, tdata) -> np.ndarray:
+def to_u(problem: Problem, values: Mapping[str, float], base: EWBParams, tdata) -> np.ndarray:
     """The unconstrained vector for start ``values`` (SI; ``"name[k]"`` per trace)."""
     defaults = base.as_dict()
     u = [PARAMS[n].to_unconstrained(values.get(n, defaults.get(n))) for n in problem.shared]
