@@ -514,3 +514,36 @@ def test_the_candidates_fitted_side_by_side_give_the_loops_diagnosis(monkeypatch
     a, b = json.loads(json_text(one.to_json())), json.loads(json_text(two.to_json()))
     a.pop("timings_s"), b.pop("timings_s")
     assert a == b and [f.effect for f in two.findings] == ["sensor_delay"]
+
+
+def test_a_headline_parameter_the_chain_and_its_stage_disagree_on_is_that_uncertain():
+    """The corrected chain's a, b, c, mu carry, in quadrature, their distance from the
+    same parameters fitted at their own stage on the recorded inputs: what the findings
+    leave of an upstream mismatch moves them through the model's piston, and the
+    interval must cover it. A parameter on which the two agree keeps its error, and
+    the note names only the parameters the distance dominates."""
+    from types import SimpleNamespace
+
+    from ewb_ident.diagnosis import diagnose as dg
+    from ewb_ident.diagnosis.corrected import with_spread
+
+    def fit(names, values):
+        return SimpleNamespace(problem=SimpleNamespace(shared=names), values=values)
+
+    work = SimpleNamespace(
+        current={
+            "motor": fit(("R", "L"), {"R": 1.0, "L": 2e-3}),
+            "force": fit(("F_rt", "a", "b", "c"), {"a": 6.3e-4, "b": 2.90, "c": 9.57e-4}),
+            "torque": fit(("mu",), {"mu": 0.35}),
+        }
+    )
+    chain = {"a": 6.5e-4, "b": 2.80, "c": 9.57e-4, "mu": 0.35, "R": 1.1}
+    apart = dg._stage_spread(work, chain)
+    assert apart == pytest.approx({"a": 2e-5, "b": 0.10, "c": 0.0, "mu": 0.0}, abs=1e-12)
+    stderr = {"a": 1e-5, "b": 0.01, "c": 5e-6, "mu": 1e-4, "R": 0.01}
+    wider = with_spread(stderr, apart)
+    assert wider["a"] == pytest.approx(np.hypot(1e-5, 2e-5))
+    assert wider["b"] == pytest.approx(np.hypot(0.01, 0.10))
+    assert wider["c"] == stderr["c"] and wider["mu"] == stderr["mu"] and wider["R"] == 0.01
+    (note,) = dg._stage_spread_note(apart, wider)
+    assert "chain's a, b differ" in note
