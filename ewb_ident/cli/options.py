@@ -80,6 +80,12 @@ WithDiagnosisOption = Annotated[
     Path | None,
     typer.Option("--with-diagnosis", help="Folder of an earlier `diagnose`: add what it found."),
 ]
+FixOption = Annotated[
+    str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
+]
+IntegratorOption = Annotated[
+    str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
+]
 
 
 def fail(message: str) -> None:
@@ -248,6 +254,16 @@ def assignments(text: str | None, option: str) -> dict[str, float]:
         except ValueError:
             fail(f"{option} takes NAME=VALUE pairs separated by commas, got {item!r}")
     return out
+
+
+def integrator_option(name: str):
+    """The :class:`~ewb_ident.model.integrate.Integrator` ``--integrator`` names
+    (``exponential`` or ``heun``); any other name is refused."""
+    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
+
+    if name not in ("exponential", "heun"):
+        fail(f"--integrator must be exponential or heun, got {name!r}")
+    return SEED_HEUN if name == "heun" else EXPONENTIAL
 
 
 def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):

@@ -11,6 +11,8 @@ from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
     SAMPLER_OPTIONS,
     FillGaps,
+    FixOption,
+    IntegratorOption,
     Mapping,
     NoUnitCheck,
     OutDir,
@@ -24,6 +26,7 @@ from ewb_ident.cli.options import (
     check_out,
     corrected_options,
     fail,
+    integrator_option,
     mechanism_option,
     name_list,
     progress_bar,
@@ -49,9 +52,7 @@ def sample(
     per_trace: Annotated[
         str | None, typer.Option(help="Free parameters sampled per trace, e.g. 'c,p0'.")
     ] = None,
-    fix: Annotated[
-        str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
-    ] = None,
+    fix: FixOption = None,
     priors: Annotated[
         Path | None,
         typer.Option(
@@ -82,9 +83,7 @@ def sample(
         int, typer.Option(help="Draws stored in posterior.nc with predictive and log-lik.")
     ] = 1000,
     seed: Annotated[int, typer.Option(help="Seed of everything random.")] = 0,
-    integrator: Annotated[
-        str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
-    ] = "exponential",
+    integrator: IntegratorOption = "exponential",
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
     with_: WithOption = None,
     with_diagnosis: WithDiagnosisOption = None,
@@ -113,11 +112,9 @@ def sample(
         from ewb_ident.inference.posterior import sample_corrected
 
         errors += (DiagnoseError,)
-    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
     from ewb_ident.reporting.summaries import posterior_summary
 
-    if integrator not in ("exponential", "heun"):
-        fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    method = integrator_option(integrator)
     settings = SamplerSettings(
         noise_model=noise,
         n_walkers=walkers,
@@ -154,7 +151,7 @@ def sample(
                 free=name_list(free),
                 per_trace=name_list(per_trace),
                 fixed=assignments(fix, "--fix"),
-                integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+                integrator=method,
                 **common,
             )
         else:
