@@ -21,6 +21,7 @@ from ewb_ident.cli.options import (
     check_out,
     command_line,
     fail,
+    sampler_settings,
     writing,
 )
 
@@ -230,14 +231,7 @@ def _sampler(posterior: bool, steps, max_steps, min_ess, seed):
                 "--posterior or drop it"
             )
         return None
-    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
-
-    settings = SamplerSettings(**given)
-    try:
-        settings.check(names=SAMPLER_OPTIONS)
-    except SampleError as err:
-        fail(str(err))
-    return settings
+    return sampler_settings(**given)
 
 
 def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool):

@@ -266,6 +266,20 @@ def integrator_option(name: str):
     return SEED_HEUN if name == "heun" else EXPONENTIAL
 
 
+def sampler_settings(**values):
+    """The :class:`~ewb_ident.inference.log_posterior.SamplerSettings` of these values,
+    checked before the traces are read: a setting that cannot be used is one line in the
+    options' own spelling (:data:`SAMPLER_OPTIONS`), exit 2."""
+    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
+
+    settings = SamplerSettings(**values)
+    try:
+        settings.check(names=SAMPLER_OPTIONS)
+    except SampleError as err:
+        fail(str(err))
+    return settings
+
+
 def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):
     import dataclasses
 

@@ -31,6 +31,7 @@ from ewb_ident.cli.options import (
     name_list,
     progress_bar,
     read_traces,
+    sampler_settings,
     writing,
 )
 
@@ -101,7 +102,7 @@ def sample(
         corrected_options(traces, stage, free, per_trace, fix, integrator)
     import time
 
-    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
+    from ewb_ident.inference.log_posterior import SampleError
     from ewb_ident.inference.posterior import sample as run_sample
     from ewb_ident.inference.priors import PriorError
 
@@ -115,7 +116,7 @@ def sample(
     from ewb_ident.reporting.summaries import posterior_summary
 
     method = integrator_option(integrator)
-    settings = SamplerSettings(
+    settings = sampler_settings(
         noise_model=noise,
         n_walkers=walkers,
         n_steps=steps,
@@ -126,10 +127,6 @@ def sample(
         max_draws=draws,
         seed=seed,
     )
-    try:  # before the traces are read, in the options' own spelling
-        settings.check(names=SAMPLER_OPTIONS)
-    except SampleError as err:
-        fail(str(err))
     stages = stage if stage in ("chain", "stages") else tuple(name_list(stage) or ())
     if isinstance(stages, tuple) and len(stages) == 1:
         stages = stages[0]
