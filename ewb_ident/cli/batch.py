@@ -8,6 +8,9 @@ from typing import Annotated, Any
 
 import typer
 
+# The shared options and checks this command uses. These lists, and the trace options
+# (--map, --fill-gaps, ...) in the signatures, repeat across the commands by design:
+# Typer reads each command's options from its own signature.
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
     SAMPLER_OPTIONS,
@@ -111,6 +114,8 @@ def batch(
             "interval is the 90 % HDI (interval_from: posterior).",
         ),
     ] = False,
+    # The sampler's settings under --posterior, alike in shape: one option each, no
+    # default shown (SamplerSettings holds the defaults).
     steps: Annotated[
         int | None,
         typer.Option(help="With --posterior: MCMC steps per ensemble planned (default 2000).",
