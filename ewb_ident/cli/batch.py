@@ -8,6 +8,9 @@ from typing import Annotated, Any
 
 import typer
 
+# The shared options and checks this command uses. These lists, and the trace options
+# (--map, --fill-gaps, ...) in the signatures, repeat across the commands by design:
+# Typer reads each command's options from its own signature.
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
     SAMPLER_OPTIONS,
@@ -21,6 +24,7 @@ from ewb_ident.cli.options import (
     check_out,
     command_line,
     fail,
+    sampler_settings,
     writing,
 )
 
@@ -110,6 +114,8 @@ def batch(
             "interval is the 90 % HDI (interval_from: posterior).",
         ),
     ] = False,
+    # The sampler's settings under --posterior, alike in shape: one option each, no
+    # default shown (SamplerSettings holds the defaults).
     steps: Annotated[
         int | None,
         typer.Option(help="With --posterior: MCMC steps per ensemble planned (default 2000).",
@@ -230,14 +236,7 @@ def _sampler(posterior: bool, steps, max_steps, min_ess, seed):
                 "--posterior or drop it"
             )
         return None
-    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
-
-    settings = SamplerSettings(**given)
-    try:
-        settings.check(names=SAMPLER_OPTIONS)
-    except SampleError as err:
-        fail(str(err))
-    return settings
+    return sampler_settings(**given)
 
 
 def _split_logs(campaign, out: Path, channel, fill_gaps: bool, check_units: bool):

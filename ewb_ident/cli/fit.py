@@ -7,9 +7,14 @@ from typing import Annotated
 
 import typer
 
+# The shared options and checks this command uses. These lists, and the trace options
+# (--map, --fill-gaps, ...) in the signatures, repeat across the commands by design:
+# Typer reads each command's options from its own signature.
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
     FillGaps,
+    FixOption,
+    IntegratorOption,
     Mapping,
     NoUnitCheck,
     OutDir,
@@ -23,6 +28,7 @@ from ewb_ident.cli.options import (
     check_out,
     corrected_options,
     fail,
+    integrator_option,
     mechanism_option,
     name_list,
     read_traces,
@@ -44,12 +50,8 @@ def fit(
         str | None,
         typer.Option(help="Free parameters fitted per trace, e.g. 'c,p0' after a pad change."),
     ] = None,
-    fix: Annotated[
-        str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
-    ] = None,
-    integrator: Annotated[
-        str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
-    ] = "exponential",
+    fix: FixOption = None,
+    integrator: IntegratorOption = "exponential",
     with_: WithOption = None,
     with_diagnosis: WithDiagnosisOption = None,
     mapping: Mapping = None,
@@ -66,11 +68,9 @@ def fit(
         return
     from ewb_ident.data.outputs import json_writer, write_run
     from ewb_ident.inference.least_squares import fit as run_fit
-    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
     from ewb_ident.reporting.summaries import fit_summary
 
-    if integrator not in ("exponential", "heun"):
-        fail(f"--integrator must be exponential or heun, got {integrator!r}")
+    method = integrator_option(integrator)
     try:
         trs = read_traces(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)
         result = run_fit(
@@ -79,7 +79,7 @@ def fit(
             free=name_list(free),
             per_trace=name_list(per_trace),
             fixed=assignments(fix, "--fix"),
-            integrator=SEED_HEUN if integrator == "heun" else EXPONENTIAL,
+            integrator=method,
         )
     except bad_input_errors() as err:
         fail(str(err))

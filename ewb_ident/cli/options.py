@@ -80,6 +80,12 @@ WithDiagnosisOption = Annotated[
     Path | None,
     typer.Option("--with-diagnosis", help="Folder of an earlier `diagnose`: add what it found."),
 ]
+FixOption = Annotated[
+    str | None, typer.Option(help="Fixed values in SI units, e.g. 'R=1.1,L=0.002'.")
+]
+IntegratorOption = Annotated[
+    str, typer.Option(help="exponential (default) or heun (the seed's, at 0.01 s).")
+]
 
 
 def fail(message: str) -> None:
@@ -248,6 +254,30 @@ def assignments(text: str | None, option: str) -> dict[str, float]:
         except ValueError:
             fail(f"{option} takes NAME=VALUE pairs separated by commas, got {item!r}")
     return out
+
+
+def integrator_option(name: str):
+    """The :class:`~ewb_ident.model.integrate.Integrator` ``--integrator`` names
+    (``exponential`` or ``heun``); any other name is refused."""
+    from ewb_ident.model.integrate import EXPONENTIAL, SEED_HEUN
+
+    if name not in ("exponential", "heun"):
+        fail(f"--integrator must be exponential or heun, got {name!r}")
+    return SEED_HEUN if name == "heun" else EXPONENTIAL
+
+
+def sampler_settings(**values):
+    """The :class:`~ewb_ident.inference.log_posterior.SamplerSettings` of these values,
+    checked before the traces are read: a setting that cannot be used is one line in the
+    options' own spelling (:data:`SAMPLER_OPTIONS`), exit 2."""
+    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
+
+    settings = SamplerSettings(**values)
+    try:
+        settings.check(names=SAMPLER_OPTIONS)
+    except SampleError as err:
+        fail(str(err))
+    return settings
 
 
 def read_traces(paths: list[Path], stages, mapping, fill_gaps, no_unit_check, r_eff=None):

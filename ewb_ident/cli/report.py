@@ -6,9 +6,11 @@ from typing import Annotated
 
 import typer
 
+# The shared options and checks this command uses. These lists, and the trace options
+# (--map, --fill-gaps, ...) in the signatures, repeat across the commands by design:
+# Typer reads each command's options from its own signature.
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
-    SAMPLER_OPTIONS,
     FillGaps,
     Mapping,
     NoUnitCheck,
@@ -23,6 +25,7 @@ from ewb_ident.cli.options import (
     fail,
     progress_bar,
     read_traces,
+    sampler_settings,
     writing,
 )
 
@@ -56,15 +59,10 @@ def report(
     diagnostics, and the diagnosis of missing physics."""
     check_out(out)
     from ewb_ident.inference.least_squares import fit as run_fit
-    from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
     from ewb_ident.reporting.html import build_report, write_report
     from ewb_ident.reporting.summaries import headline
 
-    sampler = SamplerSettings(n_steps=steps, min_ess=min_ess, seed=seed)
-    try:  # before the traces are read, in the options' own spelling
-        sampler.check(names=SAMPLER_OPTIONS)
-    except SampleError as err:
-        fail(str(err))
+    sampler = sampler_settings(n_steps=steps, min_ess=min_ess, seed=seed)
     post = diag = None
     try:
         trs = read_traces(traces, (stage,), mapping, fill_gaps, no_unit_check, r_eff)

@@ -11,6 +11,8 @@ import typer
 from ewb_ident.cli.options import app, check_out, fail, writing
 
 
+# The signature is the command's options (Typer): alike in shape to the other commands'
+# signatures, each option its own.
 @app.command()
 def simulate(
     out: Annotated[Path, typer.Argument(help="Trace file to write (.csv or .parquet).")],

@@ -10,6 +10,8 @@ import typer
 from ewb_ident.cli.options import EXIT_UNTRUSTWORTHY, OutDir, app, check_out, fail, writing
 
 
+# The signature is the command's options (Typer): alike in shape to the other commands'
+# signatures, each option its own.
 @app.command()
 def study(
     definition: Annotated[Path, typer.Argument(help="Study definition (TOML), see studies/.")],

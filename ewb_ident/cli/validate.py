@@ -7,6 +7,9 @@ from typing import Annotated
 
 import typer
 
+# The shared options and checks this command uses. These lists, and the trace options
+# (--map, --fill-gaps, ...) in the signatures, repeat across the commands by design:
+# Typer reads each command's options from its own signature.
 from ewb_ident.cli.options import (
     EXIT_UNTRUSTWORTHY,
     FillGaps,

@@ -32,6 +32,7 @@ class CampaignError(InputError):
     """A campaign that cannot be run as named (the message says where and what to do)."""
 
 
+# A frozen record of its fields, like the package's other records: alike in shape only.
 @dataclass(frozen=True)
 class Entry:
     """One trace of a campaign.

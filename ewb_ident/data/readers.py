@@ -17,7 +17,16 @@ from ewb_ident.data.tables import MAX_LOG_SAMPLES as MAX_LOG_SAMPLES
 from ewb_ident.data.tables import MAX_SAMPLES as MAX_SAMPLES
 from ewb_ident.data.tables import SUFFIXES as SUFFIXES
 from ewb_ident.data.tables import read_table
-from ewb_ident.data.trace import COLUMNS, MAX_GAP, NanPolicy, Trace, column_label, raise_trace_error
+from ewb_ident.data.trace import (
+    COLUMNS,
+    MAX_GAP,
+    NanPolicy,
+    Trace,
+    column_label,
+    raise_trace_error,
+    refuse_channel_shape,
+    refuse_unknown_channel,
+)
 from ewb_ident.data.units import convert_unit, load_mapping
 from ewb_ident.data.validation import (
     NAN_HINT,
@@ -378,21 +387,11 @@ def from_arrays(
     arrays: dict[str, np.ndarray] = {}
     for key in channels:
         if key not in allowed:
-            raise_trace_error(
-                name,
-                "not a trace channel",
-                f"channels are {', '.join(allowed)}",
-                column=f"column {key!r}",
-            )
+            refuse_unknown_channel(name, key)
     for key in allowed:
         if key in channels:
             values = np.array(channels[key], dtype=np.float64)
             if values.shape != t.shape:
-                raise_trace_error(
-                    name,
-                    f"has shape {values.shape}, time_s has {t.shape}",
-                    "give every channel as a 1-D array of the same length as time_s",
-                    column=f"column {key!r}",
-                )
+                refuse_channel_shape(name, key, values.shape, t.shape)
             arrays[key] = values
     return Trace(name=name, time_s=t, channels=arrays, sidecar=dict(sidecar or {}))

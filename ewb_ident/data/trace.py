@@ -79,7 +79,6 @@ COLUMNS: dict[str, str] = {
 }
 
 
-
 DEFAULT_R_EFF_M = 0.15
 
 
@@ -236,6 +235,27 @@ def raise_trace_error(
         parts.append(f"row {row}")
     parts.append(f"{problem}; {fix}")
     raise TraceError(_one_line(": ".join(parts)))
+
+
+def refuse_unknown_channel(file: str, name: str) -> NoReturn:
+    """Raise :class:`TraceError`: ``name`` is not a channel of :data:`COLUMNS`."""
+    raise_trace_error(
+        file,
+        "not a trace channel",
+        f"channels are {', '.join(c for c in COLUMNS if c != 'time_s')}",
+        column=f"column {name!r}",
+    )
+
+
+def refuse_channel_shape(file: str, name: str, shape: Any, time_shape: Any) -> NoReturn:
+    """Raise :class:`TraceError`: channel ``name`` has ``shape``, not that of ``time_s``
+    (``time_shape``)."""
+    raise_trace_error(
+        file,
+        f"has shape {shape}, time_s has {time_shape}",
+        "give every channel as a 1-D array of the same length as time_s",
+        column=f"column {name!r}",
+    )
 
 
 def column_label(name: str, sources: Mapping[str, str] | None = None) -> str:

@@ -21,6 +21,8 @@ from ewb_ident.data.trace import (
     fmt6,
     mapped_sources,
     raise_trace_error,
+    refuse_channel_shape,
+    refuse_unknown_channel,
 )
 
 _MIN_RATE_HZ = 100.0
@@ -479,20 +481,9 @@ def _check_arrays(trace: Trace) -> None:
         )
     for name, values in trace.channels.items():
         if name not in COLUMNS or name == "time_s":
-            raise_trace_error(
-                label,
-                "not a trace channel",
-                f"channels are {', '.join(c for c in COLUMNS if c != 'time_s')}",
-                column=f"column {name!r}",
-            )
+            refuse_unknown_channel(label, name)
         if not isinstance(values, np.ndarray) or values.shape != t.shape:
-            shape = getattr(values, "shape", None)
-            raise_trace_error(
-                label,
-                f"has shape {shape}, time_s has {t.shape}",
-                "give every channel as a 1-D array of the same length as time_s",
-                column=f"column {name!r}",
-            )
+            refuse_channel_shape(label, name, getattr(values, "shape", None), t.shape)
         if values.dtype != np.float64:
             raise_trace_error(
                 label,

@@ -17,7 +17,7 @@ instrumentation, not of the brake, and must not raise an alarm about missing phy
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -48,13 +48,8 @@ class Artefact:
     amplitude: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "channel": self.channel,
-            "kind": self.kind,
-            "summary": self.summary,
-            "frequency_hz": self.frequency_hz,
-            "amplitude": self.amplitude,
-        }
+        """The entry: every field, under its own name."""
+        return asdict(self)
 
 
 def _fit_line(e: np.ndarray, t: np.ndarray, f: float, idx=None) -> tuple[complex, np.ndarray]:

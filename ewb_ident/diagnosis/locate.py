@@ -184,6 +184,8 @@ class Mismatch:
 
     def to_json(self) -> dict[str, Any]:
         """The contract's mismatch entry (plus the test statistics)."""
+        # The document's keys spelled out, each from its attribute: alike in shape to the
+        # other to_json documents, each the contract of its own.
         return {
             "stage": self.stage,
             "phase": self.phase,

@@ -26,6 +26,7 @@ from ewb_ident.diagnosis.session import (
 # ----------------------------------------------------------------------------- results
 
 
+# A frozen record of its fields, like the package's other results: alike in shape only.
 @dataclass(frozen=True)
 class Candidate:
     """One mechanism fitted as a candidate explanation, with its evidence."""
@@ -141,6 +142,7 @@ class Finding:
         return out
 
 
+# A frozen record of its fields, like the package's other results: alike in shape only.
 @dataclass(frozen=True)
 class DiagnosisResult:
     """The outcome of :func:`diagnose` (immutable).

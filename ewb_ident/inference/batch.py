@@ -36,6 +36,7 @@ FROM_STDERR = "stderr"
 FROM_POSTERIOR = "posterior"
 
 
+# A frozen record of its fields, like the package's other records: alike in shape only.
 @dataclass(frozen=True)
 class TraceJob:
     """Everything a worker needs to fit one trace (plain values, picklable).

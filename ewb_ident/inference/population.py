@@ -175,7 +175,8 @@ class TwoLevel:
     tau_trace_low90: float | None
     tau_trace_high90: float | None
 
-    # The population's mean, as :class:`Combined` has it (for :func:`group_change`).
+    # The population's mean, as :class:`Combined` has it (for :func:`group_change`): one
+    # property per attribute, alike in shape.
     @property
     def n(self) -> int:
         return self.n_traces

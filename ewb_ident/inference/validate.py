@@ -102,6 +102,7 @@ def checked_params(params: Mapping[str, Any], where: str, fix: str) -> EWBParams
     return EWBParams(**values)
 
 
+# A frozen record of its fields, like the package's other results: alike in shape only.
 @dataclass(frozen=True)
 class ValidationResult:
     """Scores of fitted parameters on a trace they were not fitted to.
@@ -138,6 +139,8 @@ class ValidationResult:
 
     def to_json(self) -> dict[str, Any]:
         """The ``validate.json`` document."""
+        # The document's keys spelled out, each from its attribute: alike in shape to the
+        # other to_json documents, each the contract of its own.
         return {
             "trace": self.trace_name,
             "verdict": self.verdict,
@@ -227,6 +230,7 @@ def validate(
             + ": this trace differs from the one the model was fitted to (another unit, "
             "a hardware change, or physics the model leaves out)"
         )
+    # One keyword per field: alike in shape to other constructors' calls (problem.Setup).
     return ValidationResult(
         trace_name=trace.name,
         params=params,

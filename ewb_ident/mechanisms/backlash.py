@@ -68,6 +68,8 @@ class Backlash(AbstractMechanism):
     physics: ClassVar[str] = "play in the worm gear between pinion and wedge"
     NUISANCE: ClassVar[tuple[str, ...]] = ("side",)
 
+    # A flexible form declared as every mechanism with one declares it (FORM, its static
+    # flag, the parameter it adds; base.AbstractMechanism.refinements).
     FORM: ClassVar[str] = "spring"
 
     spring: bool = eqx.field(static=True, default=False)
@@ -109,6 +111,7 @@ class Backlash(AbstractMechanism):
         rest = jax.lax.scan(sprung, (w0, theta_deg[0]), theta_deg[1:])[1]
         return jnp.concatenate([w0[None], rest])
 
+    # The words, in the same shape as every mechanism's (observation, describe).
     def observation(self, values, ctx) -> str:
         return (
             f"the piston stands still for about {2 * values['beta_deg']:.1f} deg of pinion "

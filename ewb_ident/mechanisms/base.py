@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, get_args
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -75,19 +75,8 @@ Hook = Literal[
     "load_series",
     "force_input",
 ]
-HOOKS: tuple[str, ...] = (
-    "voltage",
-    "motor_friction",
-    "load_torque",
-    "wedge_angle",
-    "clamp_force",
-    "friction_coefficient",
-    "sensor",
-    "output",
-    "voltage_series",
-    "load_series",
-    "force_input",
-)
+#: The hooks, in the order of :data:`Hook`.
+HOOKS: tuple[str, ...] = get_args(Hook)
 
 
 class AbstractMechanism(eqx.Module):
@@ -345,6 +334,36 @@ class AbstractMechanism(eqx.Module):
     def x_shift(self, ctx: Mapping[str, Any]) -> jnp.ndarray | float:
         """Shift of the displacement the bell sees, m (``force_input`` hook)."""
         return 0.0
+
+
+class AbstractSensorMechanism(AbstractMechanism):
+    """A mechanism on one sensor channel (``sensor`` hook): how the sensor of
+    :attr:`channel` reports the true series, one instance per channel it can act on."""
+
+    hook: ClassVar[Hook] = "sensor"
+    #: The channels the mechanism can act on.
+    CHANNELS: ClassVar[tuple[str, ...]] = ()
+
+    channel: str = eqx.field(static=True, default="force_N")
+
+    def __check_init__(self):
+        if self.channel not in self.CHANNELS:
+            raise ValueError(
+                f"{self.id}: channel must be one of {self.CHANNELS}, got {self.channel!r}"
+            )
+
+    @property
+    def variant(self) -> str:
+        return f"{self.id}[{self.channel}]"
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return (self.channel,)
+
+    def unsupported_reason(self, channels, ctx) -> str | None:
+        if self.channel not in channels:
+            return f"the trace has no {self.channel}"
+        return None
 
 
 def _ref(info: ParamInfo) -> float:

@@ -24,6 +24,7 @@ from jax.typing import ArrayLike
 from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
 from ewb_ident.model.params import ParamInfo
 
+# Parameters declared as every mechanism's are (ParamInfo): the same shape, their own values.
 _INFO = (
     ParamInfo(
         "h",
@@ -46,6 +47,8 @@ _INFO = (
 )
 
 
+# Declared as every catalog mechanism is (base.AbstractMechanism): the same shape, its own
+# physics.
 class ForceHysteresis(AbstractMechanism):
     """Multiplicative Dahl friction on the bell's clamping force."""
 
@@ -77,6 +80,7 @@ class ForceHysteresis(AbstractMechanism):
         z = jax.lax.scan(step, jnp.asarray(-1.0, f_bell.dtype), dx)[1]
         return f_bell * (1.0 + self.h * z)
 
+    # The words, in the same shape as every mechanism's (observation, describe).
     def observation(self, values, ctx) -> str:
         h = values["h"]
         ratio = (1 + h) / (1 - h) - 1

@@ -27,6 +27,7 @@ from jax.typing import ArrayLike
 from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm, fmt_rate
 from ewb_ident.model.params import ParamInfo
 
+# Parameters declared as every mechanism's are (ParamInfo): the same shape, their own values.
 _INFO = (
     ParamInfo(
         "phi_per_J",
@@ -64,6 +65,8 @@ def retained_energy(power: jnp.ndarray, dt: jnp.ndarray, rate: jnp.ndarray) -> j
     return jnp.concatenate([jnp.zeros(1, power.dtype), rest])
 
 
+# Declared as every catalog mechanism is (base.AbstractMechanism): the same shape, its own
+# physics.
 class FrictionFade(AbstractMechanism):
     """Energy-driven fade of mu; with ``cooling``, the energy leaks away."""
 

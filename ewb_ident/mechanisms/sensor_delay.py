@@ -11,12 +11,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-import equinox as eqx
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE
-from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import AbstractSensorMechanism, fmt_pm
 from ewb_ident.model.params import ParamInfo
 
 _INFO = (ParamInfo("delay_s", "s", "log", 0.01, lower=1e-4, upper=0.25, doc="sensor delay"),)
@@ -28,21 +27,14 @@ def shift(y: jnp.ndarray, samples: jnp.ndarray) -> jnp.ndarray:
     return jnp.interp(k - samples, k, y)
 
 
-class SensorDelay(AbstractMechanism):
+class SensorDelay(AbstractSensorMechanism):
     """A fixed delay on one sensor channel."""
 
     id: ClassVar[str] = "sensor_delay"
-    hook: ClassVar[str] = "sensor"
     physics: ClassVar[str] = "one channel lags the others by a fixed time"
+    CHANNELS: ClassVar[tuple[str, ...]] = tuple(CHANNEL_STAGE)
 
-    channel: str = eqx.field(static=True, default="force_N")
     delay_s: ArrayLike = 0.01
-
-    def __check_init__(self):
-        if self.channel not in CHANNEL_STAGE:
-            raise ValueError(
-                f"sensor_delay: channel must be one of {tuple(CHANNEL_STAGE)}, got {self.channel!r}"
-            )
 
     def param_info(self) -> tuple[ParamInfo, ...]:
         return _INFO
@@ -52,22 +44,9 @@ class SensorDelay(AbstractMechanism):
         return CHANNEL_STAGE[self.channel]
 
     @property
-    def variant(self) -> str:
-        return f"sensor_delay[{self.channel}]"
-
-    @property
     def stages(self) -> tuple[str, ...]:
         tail = (CHANNEL_INPUT_OF[self.channel],) if self.channel in CHANNEL_INPUT_OF else ()
         return (CHANNEL_STAGE[self.channel], *tail)
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        return (self.channel,)
-
-    def unsupported_reason(self, channels, ctx) -> str | None:
-        if self.channel not in channels:
-            return f"the trace has no {self.channel}"
-        return None
 
     def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
         dt = float(ctx.get("dt", 0.005))

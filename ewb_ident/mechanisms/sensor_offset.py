@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import equinox as eqx
 from jax.typing import ArrayLike
 
-from ewb_ident.mechanisms.base import AbstractMechanism, fmt_pm
+from ewb_ident.mechanisms.base import AbstractSensorMechanism, fmt_pm
 from ewb_ident.model.params import ParamInfo
 
 _INFO = {
@@ -65,25 +65,18 @@ _DRIFT = {
 _STAGES = {"force_N": ("force", "torque"), "torque_Nm": ("torque",)}
 
 
-class SensorOffset(AbstractMechanism):
+class SensorOffset(AbstractSensorMechanism):
     """An offset on one sensor channel: constant, or drifting linearly (``drift``)."""
 
     id: ClassVar[str] = "sensor_offset"
-    hook: ClassVar[str] = "sensor"
     physics: ClassVar[str] = "a constant offset on the force or torque sensor"
+    CHANNELS: ClassVar[tuple[str, ...]] = tuple(_INFO)
 
-    channel: str = eqx.field(static=True, default="force_N")
     FORM: ClassVar[str] = "drift"
 
     drift: bool = eqx.field(static=True, default=False)
     offset: ArrayLike = 0.0
     drift_per_s: ArrayLike = 0.0
-
-    def __check_init__(self):
-        if self.channel not in _INFO:
-            raise ValueError(
-                f"sensor_offset: channel must be one of {tuple(_INFO)}, got {self.channel!r}"
-            )
 
     def param_info(self) -> tuple[ParamInfo, ...]:
         if self.drift:
@@ -99,21 +92,8 @@ class SensorOffset(AbstractMechanism):
         return _STAGES[self.channel][0]
 
     @property
-    def variant(self) -> str:
-        return f"sensor_offset[{self.channel}]"
-
-    @property
     def stages(self) -> tuple[str, ...]:
         return _STAGES[self.channel]
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        return (self.channel,)
-
-    def unsupported_reason(self, channels, ctx) -> str | None:
-        if self.channel not in channels:
-            return f"the trace has no {self.channel}"
-        return None
 
     def starts(self, ctx: Mapping[str, Any]) -> list[dict[str, float]]:
         if self.drift:

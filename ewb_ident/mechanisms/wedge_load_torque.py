@@ -23,6 +23,7 @@ from jax.typing import ArrayLike
 from ewb_ident.mechanisms.base import RESOLVED_Z, AbstractMechanism, fmt_pm
 from ewb_ident.model.params import EWBParams, ParamInfo
 
+# Parameters declared as every mechanism's are (ParamInfo): the same shape, their own values.
 _INFO = (
     ParamInfo(
         "k_w",

@@ -391,6 +391,8 @@ def _simulate(params, voltage_V, dt, theta0_deg, r_eff_m, stage, integrator, loa
     return {k: out[k] for k in ("current_A", "omega_rad_s", "theta_deg")} | out
 
 
+# simulate_motor and simulate_chain: public signatures and docstrings of their own, alike in
+# shape, over one _simulate.
 @numerics
 def simulate_motor(
     params: EWBParams,

@@ -184,29 +184,30 @@ def _finding_channel(finding: Finding) -> str:
 
 def _gap_view(ax, tr, before, after) -> bool:
     th = tr["theta_deg"]
-    series = _curves(before, after, 1e3)
-    for y, style in series:
-        ax.plot(th, y, **style)
-    ax.set_xlabel("pinion angle, deg")
-    ax.set_ylabel("displacement, mm")
-    ax.legend(fontsize=8, loc="lower right")
     # The play shows where the motion reverses: the top of the stroke.
-    span = float(np.ptp(th))
-    _zoom(ax, th, series, th > float(np.max(th)) - 0.03 * span, "reversal")
-    return True
+    top = th > float(np.max(th)) - 0.03 * float(np.ptp(th))
+    labels = ("pinion angle, deg", "displacement, mm")
+    return _curve_view(ax, th, _curves(before, after, 1e3), labels, top, "reversal")
 
 
 def _force_view(ax, tr, before, after) -> bool:
     x = tr["x_m"] * 1e3
-    series = _curves(before, after, 1.0)
-    for y, style in series:
-        ax.plot(x, y, **style)
-    ax.set_xlabel("displacement, mm")
-    ax.set_ylabel("force, N")
-    ax.legend(fontsize=8, loc="lower right")
     # A hysteresis loop is widest where the force is high.
     f = before.measured
-    _zoom(ax, x, series, f > 0.5 * float(np.max(f)), "loop")
+    high = f > 0.5 * float(np.max(f))
+    labels = ("displacement, mm", "force, N")
+    return _curve_view(ax, x, _curves(before, after, 1.0), labels, high, "loop")
+
+
+def _curve_view(ax, x: np.ndarray, series, labels: tuple[str, str], sel, what: str) -> bool:
+    """The ``series`` (:func:`_curves`) against ``x``, axis ``labels`` (x, y), and an
+    inset enlarging the samples ``sel`` (:func:`_zoom`)."""
+    for y, style in series:
+        ax.plot(x, y, **style)
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.legend(fontsize=8, loc="lower right")
+    _zoom(ax, x, series, sel, what)
     return True
 
 

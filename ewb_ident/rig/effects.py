@@ -15,6 +15,8 @@ from ewb_ident.rig.params import RigError, check_finite, check_nonnegative, chec
 # --------------------------------------------------------------------------------------
 
 
+# Each effect is a frozen dataclass of its parameters whose __post_init__ checks them: the
+# classes are alike in shape, their physics is not.
 @dataclass(frozen=True)
 class RigEffect:
     """Base of the switchable catalog effects; ``id`` is the CONTRACTS.md catalog id."""
@@ -87,6 +89,7 @@ class WedgeLoadTorque(RigEffect):
     """
 
     id: ClassVar[str] = "wedge_load_torque"
+    # Fields and checks alike in shape to the other effects' (see RigEffect), not in physics.
     k_w: float = 3e-5
     omega0_rad_s: float = 0.5
     k_r: float = 0.0
@@ -331,6 +334,8 @@ class Stiction(RigEffect):
 
 
 #: The catalog effects by id.
+# The same ids in the same order as mechanisms.CATALOG, deliberately separate: the rig is
+# the truth the tool is tested against and imports nothing of the tool's (only data).
 EFFECTS: dict[str, type[RigEffect]] = {
     cls.id: cls
     for cls in (

@@ -90,6 +90,9 @@ class RigParams:
         constant speed), disc + flywheel inertia (kg m^2, used in ``coast``).
     """
 
+    # The seed model's parameters (model.params.EWBParams, same names and values),
+    # deliberately separate: the rig is the truth the tool is tested against and imports
+    # nothing of the tool's (only data).
     R: float = 1.0
     L: float = 2.0e-3
     kb: float = 0.1

@@ -265,7 +265,7 @@ class CleanRun:
     states: Mapping[str, np.ndarray]
 
 
-@overload
+@overload  # twice, the signature repeated as typing.overload needs; return_clean differs
 def simulate_rig(
     params: RigParams = ...,
     *,
