@@ -290,13 +290,23 @@ def inputs_of(col: Column) -> tuple[str, ...]:
     return tuple(col.form[1:3]) if col.form[0] in PRODUCT else (col.signal,)
 
 
-def depends_of(columns: Sequence[Column]) -> tuple[str, ...]:
-    """The signals basis columns depend on, in order of first use."""
-    return tuple(dict.fromkeys(n for c in columns for n in inputs_of(c)))
+class TermColumns:
+    """The basis columns of a distilled term (``terms``: its items, each a tuple of
+    columns) and the signals they depend on, in order of first use."""
+
+    terms: tuple[tuple[Column, ...], ...]
+
+    @property
+    def columns(self) -> list[Column]:
+        return [c for t in self.terms for c in t]
+
+    @property
+    def depends_on(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(n for c in self.columns for n in inputs_of(c)))
 
 
 @dataclass(frozen=True)
-class Discovery:
+class Discovery(TermColumns):
     """What discovery found at one stage: the best place, its learned and distilled
     terms, the other places tried, and the evidence."""
 
@@ -318,14 +328,6 @@ class Discovery:
     #: The stage's free parameters (SI) after the linearised step with the term: a start
     #: for its fit through the model beside the current values.
     start: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def columns(self) -> list[Column]:
-        return [c for t in self.terms for c in t]
-
-    @property
-    def depends_on(self) -> tuple[str, ...]:
-        return depends_of(self.columns)
 
     @property
     def equivalents(self) -> tuple[str, ...]:

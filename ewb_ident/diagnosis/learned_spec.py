@@ -14,7 +14,7 @@ from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import InputError
 from ewb_ident.diagnosis.discovery import (
     Discovery,
-    depends_of,
+    TermColumns,
     equation_of,
     inputs_of,
     learned_term,
@@ -38,7 +38,7 @@ class TermError(InputError):
 
 
 @dataclass(frozen=True)
-class LearnedSpec:
+class LearnedSpec(TermColumns):
     """A learned term as data, to refit it as part of a model on any trace: where it
     acts, its distilled basis (each column a form of named signals,
     :func:`ewb_ident.diagnosis.inputs.form_values`), the size each signal is normalised
@@ -66,14 +66,6 @@ class LearnedSpec:
         terms = tuple(tuple(Column(c.label, c.signal, None, c.form) for c in t) for t in disc.terms)
         coef = tuple(float(c) for c in coef)
         return cls(disc.place, terms, refs, disc.model, coef, dict(disc.spread))
-
-    @property
-    def columns(self) -> list[Column]:
-        return [c for t in self.terms for c in t]
-
-    @property
-    def depends_on(self) -> tuple[str, ...]:
-        return depends_of(self.columns)
 
     def to_json(self) -> dict[str, Any]:
         return {
