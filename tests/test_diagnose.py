@@ -524,8 +524,7 @@ def test_a_headline_parameter_the_chain_and_its_stage_disagree_on_is_that_uncert
     the note names only the parameters the distance dominates."""
     from types import SimpleNamespace
 
-    from ewb_ident.diagnosis import diagnose as dg
-    from ewb_ident.diagnosis.corrected import with_spread
+    from ewb_ident.diagnosis.corrected import stage_spread, stage_spread_note, with_spread
 
     def fit(names, values):
         return SimpleNamespace(problem=SimpleNamespace(shared=names), values=values)
@@ -538,12 +537,12 @@ def test_a_headline_parameter_the_chain_and_its_stage_disagree_on_is_that_uncert
         }
     )
     chain = {"a": 6.5e-4, "b": 2.80, "c": 9.57e-4, "mu": 0.35, "R": 1.1}
-    apart = dg._stage_spread(work, chain)
+    apart = stage_spread(work, chain)
     assert apart == pytest.approx({"a": 2e-5, "b": 0.10, "c": 0.0, "mu": 0.0}, abs=1e-12)
     stderr = {"a": 1e-5, "b": 0.01, "c": 5e-6, "mu": 1e-4, "R": 0.01}
     wider = with_spread(stderr, apart)
     assert wider["a"] == pytest.approx(np.hypot(1e-5, 2e-5))
     assert wider["b"] == pytest.approx(np.hypot(0.01, 0.10))
     assert wider["c"] == stderr["c"] and wider["mu"] == stderr["mu"] and wider["R"] == 0.01
-    (note,) = dg._stage_spread_note(apart, wider)
+    (note,) = stage_spread_note(apart, wider)
     assert "chain's a, b differ" in note

@@ -161,6 +161,45 @@ def model_tables(chain_fits: Sequence[FitResult], ok: bool) -> dict[str, dict]:
     }
 
 
+def stage_spread(work, chain_values) -> dict[str, float]:
+    """Per headline parameter (a, b, c, mu), how far the corrected chain's estimate lies
+    from that of its own stage fitted on the recorded input (the force law on the
+    recorded piston, the friction on the recorded force), with the findings there.
+
+    The chain runs from the voltage: what the findings leave of an upstream stage's
+    mismatch reaches the force and the torque through the model's piston and force, and
+    the bell's a, b, c (or mu) can take it up. Were the corrected model right, the two
+    estimates would agree within their errors; their distance is how far the
+    remaining misfit moves the parameter, which the trace cannot settle. Like the form
+    spread, it is added to the standard error in quadrature."""
+    out: dict[str, float] = {}
+    for name in CONTRACT_PARAMS:
+        fits = [f for st, f in work.current.items() if st != "chain" and name in f.problem.shared]
+        if fits and name in chain_values:
+            out[name] = abs(float(chain_values[name]) - float(fits[0].values[name]))
+    return out
+
+
+def stage_spread_note(apart: dict[str, float], stderr) -> list[str]:
+    """A note naming the headline parameters whose error is mostly :func:`stage_spread`."""
+    big = [k for k, v in apart.items() if stderr.get(k) and v > 0.5 * stderr[k]]
+    if not big:
+        return []
+    one = len(big) == 1
+    return [
+        f"the corrected chain's {', '.join(big)} "
+        + ("differs from its stage's fit" if one else "differ from their stages' fits")
+        + " on the recorded inputs by "
+        + ", ".join(f"{apart[k]:.3g}" for k in big)
+        + " (SI): what the findings leave of the mismatch upstream moves "
+        + (
+            "it, and its standard error includes it"
+            if one
+            else "them, and their standard errors include it"
+        )
+    ]
+
+
 # ----------------------------------------------------------------------------- corrected
 
 

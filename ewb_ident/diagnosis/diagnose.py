@@ -70,6 +70,8 @@ from ewb_ident.diagnosis.corrected import (
     merged_spread,
     model_tables,
     spread_notes,
+    stage_spread,
+    stage_spread_note,
     with_spread,
 )
 from ewb_ident.diagnosis.discovery import Discovery, discover
@@ -105,7 +107,6 @@ from ewb_ident.diagnosis.session import (
 from ewb_ident.diagnosis.signatures import not_generalised
 from ewb_ident.inference.augmented import fit_mechanisms
 from ewb_ident.inference.fit_result import FitResult
-from ewb_ident.inference.log_posterior import CONTRACT_PARAMS
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.mechanisms.learned import term_at
 from ewb_ident.model.numerics import numerics
@@ -223,9 +224,9 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], spread)
         notes += spread_notes(spread, tables["augmented_stderr"])
         if added:
-            apart = _stage_spread(work, tables["augmented_params"])
+            apart = stage_spread(work, tables["augmented_params"])
             tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], apart)
-            notes += _stage_spread_note(apart, tables["augmented_stderr"])
+            notes += stage_spread_note(apart, tables["augmented_stderr"])
     timings["total"] = time.perf_counter() - t_start
     return DiagnosisResult(
         trace_name=trace.name,
@@ -549,37 +550,6 @@ def _form_spread(work: _Work, added) -> dict[str, float]:
     return merged_spread(d.spread for d, _, _, term in work.discoveries if term.variant in kept)
 
 
-def _stage_spread(work: _Work, chain_values) -> dict[str, float]:
-    """Per headline parameter (a, b, c, mu), how far the corrected chain's estimate lies
-    from that of its own stage fitted on the recorded input (the force law on the
-    recorded piston, the friction on the recorded force), with the findings there.
-
-    The chain runs from the voltage: what the findings leave of an upstream stage's
-    mismatch reaches the force and the torque through the model's piston and force, and
-    the bell's a, b, c (or mu) can take it up. Were the corrected model right, the two
-    estimates would agree within their errors; their distance is how far the
-    remaining misfit moves the parameter, which the trace cannot settle. Like the form
-    spread, it is added to the standard error in quadrature."""
-    out: dict[str, float] = {}
-    for name in CONTRACT_PARAMS:
-        fits = [f for st, f in work.current.items() if st != "chain" and name in f.problem.shared]
-        if fits and name in chain_values:
-            out[name] = abs(float(chain_values[name]) - float(fits[0].values[name]))
-    return out
-
-
-def _stage_spread_note(apart: dict[str, float], stderr) -> list[str]:
-    """A note naming the headline parameters whose error is mostly :func:`_stage_spread`."""
-    big = [k for k, v in apart.items() if stderr.get(k) and v > 0.5 * stderr[k]]
-    if not big:
-        return []
-    return [
-        f"the corrected chain's {', '.join(big)} differ from their stages' fits on the recorded "
-        "inputs by " + ", ".join(f"{apart[k]:.3g}" for k in big) + " (SI): what the findings "
-        "leave of the mismatch upstream moves them, and their standard errors include it"
-    ]
-
-
 def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float) -> None:
     """Step 4: discovery (:mod:`ewb_ident.diagnosis.discovery`) at each stage still
     located, unless a held back catalog rival removes as much as the discovered term
@@ -602,6 +572,11 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
             work.notes.append(not_generalised(disc))
             continue
         res = fit_learned(ses, disc, work.selected, bic_threshold)
+        for alt in disc.alternatives() if res is None else ():
+            res = fit_learned(ses, alt, work.selected, bic_threshold)
+            if res is not None:
+                disc = alt
+                break
         if res is None:
             work.notes.append(
                 f"{s} stage: the term learned at {disc.place} generalises on held-out data "

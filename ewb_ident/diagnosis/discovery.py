@@ -45,7 +45,7 @@ Thresholds were set before any study of uncatalogued physics was run.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -61,6 +61,7 @@ from ewb_ident.diagnosis.heldout import (
     white_level,
 )
 from ewb_ident.diagnosis.inputs import (
+    KNOTS,
     PRODUCT,
     Column,
     Signal,
@@ -328,6 +329,16 @@ class Discovery(TermColumns):
     #: The stage's free parameters (SI) after the linearised step with the term: a start
     #: for its fit through the model beside the current values.
     start: dict[str, float] = field(default_factory=dict)
+    #: Other expressions of the distillation (:func:`distil`), each ``(terms, coef,
+    #: distilled, start)``, for when this one does not improve the fit through the model.
+    fallbacks: tuple = field(default=(), repr=False)
+
+    def alternatives(self) -> list[Discovery]:
+        """This discovery with each of its fallback expressions in place of its own."""
+        return [
+            replace(self, terms=t, coef=c, distilled=f, start=st, fallbacks=())
+            for t, c, f, st in self.fallbacks
+        ]
 
     @property
     def equivalents(self) -> tuple[str, ...]:
@@ -593,43 +604,34 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
     )
 
 
-def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
-    """Forward selection over the library: the smallest expression that keeps
-    :data:`KEEP_SHARE` of the learned term's held-out gain (at most :data:`MAX_TERMS`
-    terms). Returns its PlaceFit, the chosen items and their least-squares coefficients
-    (per normalised basis column of the design)."""
-    # The library's columns are appended to the design as new columns.
+def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[list[int], float]:
+    """Forward selection over the library from the items ``chosen``: items enter by
+    held-out residual until the expression keeps :data:`KEEP_SHARE` of the learned
+    term's held-out gain (at most :data:`MAX_TERMS`). Returns the items and the held-out
+    residual."""
     target = learned.heldout_before - KEEP_SHARE * (learned.heldout_before - learned.heldout_after)
-    chosen: list[int] = []
-    cur = learned.heldout_before
-    while len(chosen) < MAX_TERMS:
-        best = None
-        for j in range(len(items)):
-            if j in chosen:
-                continue
-            val = d.heldout(_item_cols(items, [*chosen, j]), RIDGES[0])
-            if best is None or val < best[0]:
-                best = (val, j)
-        if best is None or cur - best[0] < MIN_STEP_SHARE * max(learned.excess, 1e-300):
+    cur = d.heldout(_item_cols(items, chosen), RIDGES[0]) if chosen else learned.heldout_before
+    while len(chosen) < MAX_TERMS and not (chosen and cur <= target):
+        vals = [
+            (d.heldout(_item_cols(items, [*chosen, j]), RIDGES[0]), j)
+            for j in range(len(items))
+            if j not in chosen
+        ]
+        if not vals:
             break
-        chosen.append(best[1])
+        best = min(vals)
+        if cur - best[0] < MIN_STEP_SHARE * max(learned.excess, 1e-300):
+            break
+        chosen = [*chosen, best[1]]
         cur = best[0]
-        if cur <= target:
-            break
+    return chosen, cur
+
+
+def _distilled_fit(d: Design, items, learned: PlaceFit, place: str, chosen, cur):
+    """The PlaceFit of the items ``chosen``, their coefficients (per normalised basis
+    column) and the stage parameters' step."""
     cols = _item_cols(items, chosen)
     ins, x = d.insample(cols, RIDGES[0])
-    # Forms the held-out data cannot tell from the chosen one: one item swapped for
-    # another whose held-out score differs by less than half the evidence threshold.
-    alts = []
-    for pos in range(len(chosen)):
-        for j in range(len(items)):
-            if j in chosen:
-                continue
-            swap = [*chosen[:pos], j, *chosen[pos + 1 :]]
-            c_alt = _item_cols(items, swap)
-            val = d.heldout(c_alt, RIDGES[0])
-            if d.score(cur, val, d.rho_after(c_alt, RIDGES[0])) < HELDOUT_BIC / 2:
-                alts.append(d.insample(c_alt, RIDGES[0])[1][: d.kb])
     fit = PlaceFit(
         place,
         tuple(str(j) for j in chosen),
@@ -644,7 +646,61 @@ def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
         d.n_folds,
     )
     coef = x[d.kb :] / d.norms[cols] if cols else np.zeros(0)
-    return fit, [items[j] for j in chosen], coef, x[: d.kb], alts
+    return fit, [items[j] for j in chosen], coef, x[: d.kb]
+
+
+#: Other expressions a distillation offers, for when the chosen one does not improve
+#: the fit through the model (:func:`distil`).
+FALLBACKS = 2
+
+
+def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
+    """Forward selection over the library (:func:`_forward`): the smallest expression
+    that keeps :data:`KEEP_SHARE` of the learned term's held-out gain. Returns its
+    PlaceFit, the chosen items, their least-squares coefficients (per normalised basis
+    column of the design), the stage parameters' step, the steps of the forms held-out
+    data cannot tell from it, and up to :data:`FALLBACKS` other expressions (each
+    ``(PlaceFit, items, coef, step)``).
+
+    The fallbacks start from the best first items on other signals than the chosen
+    expression's first: when the mismatch is large, the linearised design can rank
+    signals that all move with it nearly alike, and the fit through the model then
+    decides (an angle harmonic ranked a hair above the current that drives a magnetic
+    saturation)."""
+    chosen, cur = _forward(d, items, learned, [])
+    fit, chosen_items, coef, step = _distilled_fit(d, items, learned, place, chosen, cur)
+    # Forms the held-out data cannot tell from the chosen one: one item swapped for
+    # another whose held-out score differs by less than half the evidence threshold.
+    alts = []
+    for pos in range(len(chosen)):
+        for j in range(len(items)):
+            if j in chosen:
+                continue
+            swap = [*chosen[:pos], j, *chosen[pos + 1 :]]
+            c_alt = _item_cols(items, swap)
+            val = d.heldout(c_alt, RIDGES[0])
+            if d.score(cur, val, d.rho_after(c_alt, RIDGES[0])) < HELDOUT_BIC / 2:
+                alts.append(d.insample(c_alt, RIDGES[0])[1][: d.kb])
+    fallbacks = []
+    if chosen:
+        used = {inputs_of(c) for c in items[chosen[0]]}
+        first = sorted(
+            (d.heldout(_item_cols(items, [j]), RIDGES[0]), j)
+            for j in range(len(items))
+            if j not in chosen
+        )
+        for _, j in first:
+            ins = {inputs_of(c) for c in items[j]}
+            if len(fallbacks) == FALLBACKS:
+                break
+            if ins <= used or not all(ins):
+                continue
+            used |= ins
+            c2, cur2 = _forward(d, items, learned, [j])
+            fb = _distilled_fit(d, items, learned, place, c2, cur2)
+            if fb[0].generalises:
+                fallbacks.append(fb)
+    return fit, chosen_items, coef, step, alts, fallbacks
 
 
 def _item_cols(items, chosen) -> list[int]:
@@ -704,16 +760,37 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         places = tuple(r[0] for r in results)
         return Discovery(stage, pf.place, stages, pf, pf, (), (), method, places, sig, model)
 
-    def distilled(pf, sig, stages):
-        items = library(sig, pf.groups)
+    def distilled(pf, sig, stages, knots=(0.5,)):
+        items = library(sig, pf.groups, knots)
         groups_l = {f"item{j}": list(it) for j, it in enumerate(items)}
         fit = fits_of(stages)
         dl = _design(ses, fit, pf.place, groups_l, fold, stage)
         assert dl is not None  # the same place built a design above
-        dfit, chosen, x, step, alts = distil(dl, items, pf, pf.place)
-        return dfit, chosen, x, fit, step, [estimates(fit, a) for a in alts]
+        dfit, chosen, x, step, alts, fallbacks = distil(dl, items, pf, pf.place)
+        if not chosen and len(knots) < len(KNOTS):
+            # The library's smooth forms are what the stage's own parameters already
+            # make (a gap polynomial takes up any smooth function of the angle over one
+            # apply): hinges at every knot of the learned basis, for a term that sets
+            # in part of the way (a compliance past contact).
+            return distilled(pf, sig, stages, KNOTS)
+        return dfit, chosen, x, fit, step, [estimates(fit, a) for a in alts], fallbacks
 
-    dfit, chosen, x, fit, step, others = distilled(pf, sig, stages)
+    # A place whose learned term no expression of the library keeps (its shape is in
+    # the learned basis but not in the library) yields to the next place that explains
+    # the mismatch about as well and whose term distils.
+    cands = [results[0]] + [
+        r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain
+    ]
+    tried = [distilled(pf, sig, stages)]
+    for r in cands[1:]:
+        if tried[-1][1]:
+            break
+        tried.append(distilled(r[0], r[3], r[4]))
+    if tried[-1][1] and len(tried) > 1:
+        results.remove(cands[len(tried) - 1])
+        results.insert(0, cands[len(tried) - 1])
+        pf, d, groups, sig, stages, model = results[0]
+    dfit, chosen, x, fit, step, others, fallbacks = tried[-1] if tried[-1][1] else tried[0]
     best = estimates(fit, step, free_only=False)
     coef = tuple(float(c) for c in x)
     # Other estimates of the stage's parameters: the distilled forms about as good on
@@ -721,7 +798,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     # note "the trace cannot tell").
     for r in results[1:]:
         if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain:
-            _, _, _, fit_o, step_o, _ = distilled(r[0], r[3], r[4])
+            _, _, _, fit_o, step_o, _, _ = distilled(r[0], r[3], r[4])
             others.append(estimates(fit_o, step_o))
     spread = form_spread(best, others)
     return Discovery(
@@ -738,6 +815,15 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         model,
         spread,
         linearised_start(fit, step),
+        tuple(
+            (
+                tuple(tuple(t) for t in f_items),
+                tuple(float(c) for c in f_coef),
+                f_fit,
+                linearised_start(fit, f_step),
+            )
+            for f_fit, f_items, f_coef, f_step in fallbacks
+        ),  # fmt: skip
     )
 
 

@@ -499,9 +499,9 @@ def learned_groups(
     return groups
 
 
-def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[Column]]:
+def library(signals: Mapping[str, Signal], chosen: Sequence[str], knots=(0.5,)) -> list:
     """The distillation library of the chosen groups: each item one term (a harmonic is
-    its sine and cosine together)."""
+    its sine and cosine together); a level's hinges at ``knots`` (shares of its range)."""
     items: list[list[Column]] = []
     names = []
     for g in chosen:
@@ -540,7 +540,7 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str]) -> list[list[C
             cand += [
                 _col(f"√{sym}", name, ("sqrt",), signals),
                 _col(f"1 − exp(−{sym}/{0.3 * s.ref:.3g})", name, ("sat", 0.3), signals),
-                *_hinges(s, (0.5,), signals),
+                *_hinges(s, knots, signals),
             ]
         items += [[c] for c in cand]
     for i, a in enumerate(names):
