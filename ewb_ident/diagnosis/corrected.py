@@ -116,13 +116,19 @@ def with_spread(stderr: Mapping[str, float | None], spread: Mapping[str, float])
     return out
 
 
-def spread_notes(spread, stderr) -> list[str]:
-    """A note naming the headline parameters whose error is mostly the form spread."""
-    big = [
-        f"{k} ±{spread[k]:.3g}"
+def dominated(spread: Mapping[str, float], stderr) -> list[str]:
+    """The headline parameters (a, b, c, mu) whose ``spread`` is more than half their
+    standard error (which already includes it): a note names them."""
+    return [
+        k
         for k in CONTRACT_PARAMS
         if spread.get(k, 0.0) > 0 and stderr.get(k) and spread[k] > 0.5 * stderr[k]
     ]
+
+
+def spread_notes(spread, stderr) -> list[str]:
+    """A note naming the headline parameters whose error is mostly the form spread."""
+    big = [f"{k} ±{spread[k]:.3g}" for k in dominated(spread, stderr)]
     if not big:
         return []
     one = len(big) == 1
@@ -182,7 +188,7 @@ def stage_spread(work, chain_values) -> dict[str, float]:
 
 def stage_spread_note(apart: dict[str, float], stderr) -> list[str]:
     """A note naming the headline parameters whose error is mostly :func:`stage_spread`."""
-    big = [k for k, v in apart.items() if stderr.get(k) and v > 0.5 * stderr[k]]
+    big = dominated(apart, stderr)
     if not big:
         return []
     one = len(big) == 1
