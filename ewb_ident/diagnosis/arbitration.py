@@ -6,7 +6,9 @@ explain a stage, the catalog name is kept only when the data ask for it:
 
 * :func:`second_opinion`: the catalog mechanisms selected at a stage must remove at
   least as much of the excess residual there as the best learned term does on held-out
-  data (less :data:`~ewb_ident.diagnosis.discovery.CATALOG_MARGIN`);
+  data (less :data:`~ewb_ident.diagnosis.discovery.CATALOG_MARGIN`), and the learned
+  term fitted through the model in their place must not fit the stage better by the
+  evidence threshold;
 * :func:`one_explanation`: when a learned term is still needed on top of a catalog
   mechanism at its stage, the mechanism must also earn its place on top of a learned
   term fitted without it: the stage's fit with both must beat the learned term alone by
@@ -55,11 +57,14 @@ def _drop(work: Any, stage: str, at: Sequence[Any], why: str) -> None:
         work.notes.append(f"{mech.variant}: not reported: {why}")
 
 
-def second_opinion(ses: Session, work: Any) -> None:
+def second_opinion(ses: Session, work: Any, threshold: float) -> None:
     """The catalog mechanisms selected at a stage stay only if together they remove at
     least as much of the excess there as the best learned term does on held-out data
-    (less :data:`CATALOG_MARGIN`). Otherwise they are dropped, the stage goes to
-    discovery, and the catalog names become the learned term's rivals."""
+    (less :data:`CATALOG_MARGIN`), and the learned term fitted through the model in
+    their place does not fit the stage better by ``threshold`` in BIC (the share is
+    judged on the stage's channels together, where one channel's large mismatch can
+    hide another's that the mechanism leaves). Otherwise they are dropped, the stage
+    goes to discovery, and the catalog names become the learned term's rivals."""
     for stage in dict.fromkeys(m.stage for m in work.selected):
         at = [m for m in work.selected if m.stage == stage]
         others = [m for m in work.selected if m.stage != stage]
@@ -73,12 +78,23 @@ def second_opinion(ses: Session, work: Any) -> None:
         own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
         explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
         learned = min(disc.learned.share, 1.0)
-        if learned <= explained + CATALOG_MARGIN:
-            continue
-        why = (
-            f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess on "
-            f"held-out data against {100 * explained:.0f} % by " + ", ".join(m.variant for m in at)
-        )
+        names = ", ".join(m.variant for m in at)
+        if learned > explained + CATALOG_MARGIN:
+            why = (
+                f"a learned term at {disc.place} removes {100 * learned:.0f} % of the excess "
+                f"on held-out data against {100 * explained:.0f} % by {names}"
+            )
+        else:
+            res = fit_learned(ses, disc, others, threshold) if disc.distilled.generalises else None
+            if res is None or res[0].stages != with_all.stages:
+                continue
+            gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
+            if gain > -threshold:
+                continue
+            why = (
+                f"a learned term at {disc.place} in its place fits its stages better than "
+                f"{names} (dBIC {gain:+.1f}, threshold -{threshold:g})"
+            )
         _drop(work, stage, at, why)
         for st in T:
             work.current[st] = fits_of(ses, work.selected)((st,))

@@ -199,7 +199,7 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
     work = _explain(ses, pool, {m.stage for m in flagged}, bic_threshold, max_mechanisms, say)
     lap("explain")
     say("checking each catalog name against a learned term at its stage")
-    second_opinion(ses, work)
+    second_opinion(ses, work, bic_threshold)
     lap("second_opinion")
     say("looking for physics outside the catalog")
     _unknown(ses, work, bool(flagged), bic_threshold)
