@@ -188,6 +188,8 @@ def stage_spread(work, chain_values) -> dict[str, float]:
 
 def stage_spread_note(apart: dict[str, float], stderr) -> list[str]:
     """A note naming the headline parameters whose error is mostly :func:`stage_spread`."""
+    # Same shape as spread_notes, deliberately separate: another sentence, with its own
+    # singular and plural forms.
     big = dominated(apart, stderr)
     if not big:
         return []
