@@ -657,16 +657,9 @@ FALLBACKS = 2
 def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
     """Forward selection over the library (:func:`_forward`): the smallest expression
     that keeps :data:`KEEP_SHARE` of the learned term's held-out gain. Returns its
-    PlaceFit, the chosen items, their least-squares coefficients (per normalised basis
-    column of the design), the stage parameters' step, the steps of the forms held-out
-    data cannot tell from it, and up to :data:`FALLBACKS` other expressions (each
-    ``(PlaceFit, items, coef, step)``).
-
-    The fallbacks start from the best first items on other signals than the chosen
-    expression's first: when the mismatch is large, the linearised design can rank
-    signals that all move with it nearly alike, and the fit through the model then
-    decides (an angle harmonic ranked a hair above the current that drives a magnetic
-    saturation)."""
+    PlaceFit (its ``groups`` the chosen items' indices), the chosen items, their
+    least-squares coefficients (per normalised basis column of the design), the stage
+    parameters' step, and the steps of the forms held-out data cannot tell from it."""
     chosen, cur = _forward(d, items, learned, [])
     fit, chosen_items, coef, step = _distilled_fit(d, items, learned, place, chosen, cur)
     # Forms the held-out data cannot tell from the chosen one: one item swapped for
@@ -681,26 +674,38 @@ def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
             val = d.heldout(c_alt, RIDGES[0])
             if d.score(cur, val, d.rho_after(c_alt, RIDGES[0])) < HELDOUT_BIC / 2:
                 alts.append(d.insample(c_alt, RIDGES[0])[1][: d.kb])
-    fallbacks = []
-    if chosen:
-        used = {inputs_of(c) for c in items[chosen[0]]}
-        first = sorted(
-            (d.heldout(_item_cols(items, [j]), RIDGES[0]), j)
-            for j in range(len(items))
-            if j not in chosen
+    return fit, chosen_items, coef, step, alts
+
+
+def fallback_expressions(d: Design, items, learned: PlaceFit, distilled: PlaceFit, fit) -> list:
+    """Up to :data:`FALLBACKS` other expressions (as :attr:`Discovery.fallbacks` holds
+    them; ``fit``: the fit the design is linearised about), each a forward selection
+    from the best first item on other signals than the distilled expression's first: on
+    a large mismatch the linearised design can rank signals that all move with it nearly
+    alike, and the fit through the model decides (an angle harmonic a hair above the
+    current that drives a magnetic saturation)."""
+    chosen = [int(g) for g in distilled.groups]
+    if not chosen:
+        return []
+    used = {inputs_of(c) for c in items[chosen[0]]}
+    singles = (j for j in range(len(items)) if j not in chosen)
+    first = sorted((d.heldout(_item_cols(items, [j]), RIDGES[0]), j) for j in singles)
+    out = []
+    for _, j in first:
+        ins = {inputs_of(c) for c in items[j]}
+        if len(out) == FALLBACKS:
+            break
+        if ins <= used or not all(ins):
+            continue
+        used |= ins
+        c2, cur2 = _forward(d, items, learned, [j])
+        f_fit, f_items, f_coef, f_step = _distilled_fit(
+            d, items, learned, distilled.place, c2, cur2
         )
-        for _, j in first:
-            ins = {inputs_of(c) for c in items[j]}
-            if len(fallbacks) == FALLBACKS:
-                break
-            if ins <= used or not all(ins):
-                continue
-            used |= ins
-            c2, cur2 = _forward(d, items, learned, [j])
-            fb = _distilled_fit(d, items, learned, place, c2, cur2)
-            if fb[0].generalises:
-                fallbacks.append(fb)
-    return fit, chosen_items, coef, step, alts, fallbacks
+        if f_fit.generalises:
+            terms = tuple(tuple(t) for t in f_items)
+            out.append((terms, tuple(map(float, f_coef)), f_fit, linearised_start(fit, f_step)))
+    return out
 
 
 def _item_cols(items, chosen) -> list[int]:
@@ -766,31 +771,34 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         fit = fits_of(stages)
         dl = _design(ses, fit, pf.place, groups_l, fold, stage)
         assert dl is not None  # the same place built a design above
-        dfit, chosen, x, step, alts, fallbacks = distil(dl, items, pf, pf.place)
+        dfit, chosen, x, step, alts = distil(dl, items, pf, pf.place)
         if not chosen and len(knots) < len(KNOTS):
             # The library's smooth forms are what the stage's own parameters already
             # make (a gap polynomial takes up any smooth function of the angle over one
             # apply): hinges at every knot of the learned basis, for a term that sets
             # in part of the way (a compliance past contact).
             return distilled(pf, sig, stages, KNOTS)
-        return dfit, chosen, x, fit, step, [estimates(fit, a) for a in alts], fallbacks
+        return dfit, chosen, x, fit, step, [estimates(fit, a) for a in alts], (dl, items)
+
+    done: dict[str, tuple] = {}
+
+    def distilled_at(r):  # each place's once
+        if r[0].place not in done:
+            done[r[0].place] = distilled(r[0], r[3], r[4])
+        return done[r[0].place]
 
     # A place whose learned term no expression of the library keeps (its shape is in
     # the learned basis but not in the library) yields to the next place that explains
     # the mismatch about as well and whose term distils.
-    cands = [results[0]] + [
-        r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain
-    ]
-    tried = [distilled(pf, sig, stages)]
-    for r in cands[1:]:
-        if tried[-1][1]:
-            break
-        tried.append(distilled(r[0], r[3], r[4]))
-    if tried[-1][1] and len(tried) > 1:
-        results.remove(cands[len(tried) - 1])
-        results.insert(0, cands[len(tried) - 1])
-        pf, d, groups, sig, stages, model = results[0]
-    dfit, chosen, x, fit, step, others, fallbacks = tried[-1] if tried[-1][1] else tried[0]
+    close = [r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain]
+    kept = next((r for r in [results[0], *close] if distilled_at(r)[1]), results[0])
+    if kept is not results[0]:
+        results.remove(kept)
+        results.insert(0, kept)
+        pf, d, groups, sig, stages, model = kept
+    dfit, chosen, x, fit, step, others, (dl, items) = distilled_at(kept)
+    others = list(others)
+    fallbacks = fallback_expressions(dl, items, pf, dfit, fit)
     best = estimates(fit, step, free_only=False)
     coef = tuple(float(c) for c in x)
     # Other estimates of the stage's parameters: the distilled forms about as good on
@@ -798,7 +806,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     # note "the trace cannot tell").
     for r in results[1:]:
         if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain:
-            _, _, _, fit_o, step_o, _, _ = distilled(r[0], r[3], r[4])
+            _, _, _, fit_o, step_o, _, _ = distilled_at(r)
             others.append(estimates(fit_o, step_o))
     spread = form_spread(best, others)
     return Discovery(
@@ -815,15 +823,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         model,
         spread,
         linearised_start(fit, step),
-        tuple(
-            (
-                tuple(tuple(t) for t in f_items),
-                tuple(float(c) for c in f_coef),
-                f_fit,
-                linearised_start(fit, f_step),
-            )
-            for f_fit, f_items, f_coef, f_step in fallbacks
-        ),  # fmt: skip
+        tuple(fallbacks),
     )
 
 
