@@ -73,8 +73,7 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
             continue
         T = closure((stage,), work.selected, ses)
         without = fits_of(ses, others)(T)
-        ms = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(T)]
-        with_all = ses.fit(T, ms, explore=[False] * len(ms))
+        with_all = fits_of(ses, work.selected)(T)
         own = [c for st in ses.mechanism_stages(at[0]) for c in STAGE_OUTPUTS[st]]
         explained = bic_evidence(with_all, without, ses.sigma_tf, own)["explained_fraction"]
         learned = min(disc.learned.share, 1.0)
