@@ -18,27 +18,25 @@ model something is missing and what it depends on, without a list of candidate p
    (piecewise-linear hinges for levels; odd powers and a smooth sign for signed
    signals; harmonics for angles, at the periods the residual shows: a periodogram in
    the angle, :func:`angle_periods`, not a list), so any smooth or switching dependence
-   on one input and sums over inputs are representable. It is fitted through the model: the term's
-   effect on the stage's residuals is the model's exact linear response at the place
-   (diagonal for a static place, the motor's impulse response for the motor's
-   equations, both the output and the downstream input for a sensor), computed at the
+   on one input and sums over inputs are representable. It is fitted through the
+   model: the term's effect on the stage's residuals is the model's exact linear
+   response at the place (diagonal for a static place, the motor's impulse response for
+   the motor's equations, both the output and the downstream input for a sensor), at the
    current fit together with the Jacobian of the stage's own parameters, which are
-   refitted alongside (one Gauss-Newton step of a universal differential equation).
-   A ridge penalty chosen by cross-validation regularises it.
+   refitted alongside (one Gauss-Newton step of a universal differential equation),
+   with a ridge penalty chosen by cross-validation.
 4. **Held out.** Inputs enter one at a time while they improve the *held-out* residual
    (leave-one-apply-out with three or more applies, else four blocks in time): a term
    that only fits the data it saw is not kept. Places are ranked by held-out residual.
-5. **Distilled.** On the best place, sparse regression over a generated library of
-   the chosen inputs (powers, saturations, signs, hinges, one-sided and dead-zone
-   forms of signed inputs, harmonics at the period the learned term chose, products)
-   keeps the smallest expression that keeps 90 % of the learned term's held-out
-   improvement.
+5. **Distilled.** Sparse regression over a generated library of the chosen inputs
+   (powers, saturations, signs, hinges, one-sided and dead-zone forms, harmonics at the
+   learned periods, products) keeps the smallest expression that keeps 90 % of the
+   learned term's held-out improvement; of places about as good, the one whose
+   expression keeps the most.
 
-The distilled term is then fitted by nonlinear least squares through the JAX model (as
-a :class:`~ewb_ident.mechanisms.learned.LearnedTerm`, with the stage's parameters), and
-its words come from a table of known signatures
-(:func:`ewb_ident.diagnosis.signatures.reading`), as a hypothesis.
-
+The distilled term is then fitted by nonlinear least squares through the JAX model (a
+:class:`~ewb_ident.mechanisms.learned.LearnedTerm`, with the stage's parameters); its
+words come from :func:`ewb_ident.diagnosis.signatures.reading`, as a hypothesis.
 Thresholds were set before any study of uncatalogued physics was run.
 """
 
@@ -91,21 +89,15 @@ MAX_INPUTS = 3
 MAX_TERMS = 4
 #: The distilled equation keeps at least this share of the learned term's gain.
 KEEP_SHARE = 0.9
+#: A basis column whose part outside the span of the stage's own parameters' Jacobian
 #: is smaller than this share of it is left out (the parameters make it already).
 MIN_NEW_SHARE = 0.05
 #: Places in order of specificity: among places whose term removes at least
 #: :data:`PLACE_TIE` of the best place's held-out gain, the first is chosen (a term
-#: inside the physics before a sensor's, a sensor's before an added output).
-PLACE_ORDER = (
-    "motor.",
-    "gap",
-    "drive",
-    "force.input",
-    "friction",
-    "sensor.",
-    "force.output",
-    "torque.output",
-)
+#: inside the physics before a sensor's, a sensor's before an added output), unless a
+#: close place's distilled term keeps clearly more (:func:`discover`).
+PLACE_ORDER = ("motor.", "gap", "drive", "force.input", "friction", "sensor.",
+               "force.output", "torque.output")  # fmt: skip
 PLACE_TIE = 0.95
 #: A catalog mechanism yields to a learned term at its stage when the learned term
 #: removes this much more of the excess on held-out data.
@@ -341,6 +333,14 @@ class Discovery(TermColumns):
         ]
 
     @property
+    def close_places(self) -> tuple[PlaceFit, ...]:
+        """The other places whose learned term explains the mismatch about as well."""
+        gain = CLOSE * self.learned.rank_gain
+        return tuple(
+            p for p in self.places if p.place != self.place and p.groups and p.rank_gain >= gain
+        )
+
+    @property
     def equivalents(self) -> tuple[str, ...]:
         """Signals the trace cannot tell from those the term depends on: put in place of
         one of its inputs, they fit held-out data about as well (they move together in
@@ -499,10 +499,10 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
     else:
         freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
     g = gains(1.0 / freqs)
-    nb = np.maximum(
-        g[np.maximum(np.arange(g.size) - 1, 0)], g[np.minimum(np.arange(g.size) + 1, g.size - 1)]
-    )
-    peaks = np.flatnonzero(g >= nb)
+    # Local maxima inside the scan: one at either end is a trend (the gain still rises
+    # past the periods the trace covers or resolves), not a period.
+    inner = np.arange(1, g.size - 1)
+    peaks = inner[(g[inner] >= g[inner - 1]) & (g[inner] >= g[inner + 1])]
     out = []
     for k in sorted(peaks, key=lambda k: -g[k])[:most]:
         left, right = freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)]
@@ -534,10 +534,14 @@ LOCAL: dict[str, tuple[str, ...]] = {
 }
 
 
-#: Signals a place's term cannot depend on, by physics: a load torque on the motor acts
-#: through the mechanics (the motor's states, the load, temperature, time); the voltage
-#: the driver applies reaches the shaft only through the current, which is an input.
-NOT_INPUTS: dict[str, tuple[str, ...]] = {"motor.mechanical": ("voltage", "voltage_rate")}
+#: Signals a place's term cannot depend on, by physics: the voltage the driver applies
+#: reaches the shaft and everything after it only through the current, which is an
+#: input (it acts on the motor's electrical equation and, as crosstalk, on a sensor).
+NOT_INPUTS: dict[str, tuple[str, ...]] = {
+    p: ("voltage", "voltage_rate")
+    for p in PLACES
+    if p != "motor.electrical" and not p.startswith("sensor.")
+}
 
 
 def _is_local(group: str, local: Sequence[str]) -> bool:
@@ -787,11 +791,14 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
             done[r[0].place] = distilled(r[0], r[3], r[4])
         return done[r[0].place]
 
-    # A place whose learned term no expression of the library keeps (its shape is in
-    # the learned basis but not in the library) yields to the next place that explains
-    # the mismatch about as well and whose term distils.
+    # Of the places that explain the mismatch about as well, the first whose distilled
+    # term keeps about as much held-out gain as the best distilled one: a learned term
+    # the library cannot express (its shape is in the learned basis but not the
+    # library's) yields to one it can.
     close = [r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain]
-    kept = next((r for r in [results[0], *close] if distilled_at(r)[1]), results[0])
+    cands = [results[0], *close]
+    kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
+    kept = cands[next(i for i, g in enumerate(kept_gain) if g >= PLACE_TIE * max(kept_gain))]
     if kept is not results[0]:
         results.remove(kept)
         results.insert(0, kept)
@@ -870,14 +877,3 @@ def basis_matrix(disc: Discovery) -> np.ndarray:
     """The distilled term's basis series on the diagnosed trace, (n, K)."""
     n = disc.signals[next(iter(disc.signals))].values.size
     return stacked([c.values for c in disc.columns], n)
-
-
-def learned_term(place: str, labels: Sequence[str], coef: Sequence[float]) -> LearnedTerm:
-    """A :class:`LearnedTerm` whose optimiser coordinates are its coefficients over
-    their own sizes."""
-    return LearnedTerm(
-        place=place,
-        names=tuple(labels),
-        scales=tuple(float(max(abs(c), 1e-12)) for c in coef),
-        coef=np.asarray(coef, float),
-    )

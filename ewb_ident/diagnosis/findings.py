@@ -10,13 +10,11 @@ import numpy as np
 
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.discovery import (
-    CLOSE,
     Discovery,
     basis_matrix,
-    learned_term,
 )
 from ewb_ident.diagnosis.inputs import physical
-from ewb_ident.diagnosis.learned_spec import LearnedSpec
+from ewb_ident.diagnosis.learned_spec import LearnedSpec, learned_term
 from ewb_ident.diagnosis.locate import (
     PHASES,
     Mismatch,
@@ -261,8 +259,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
             + _and([f"{e} (ΔBIC {d:.0f})" for e, d in rivals])
             + ", explains less of it on held-out data."
         )
-    others = [p for p in disc.places if p.place != disc.place and p.groups]
-    close = [p.place for p in others if p.rank_gain >= CLOSE * disc.learned.rank_gain]
+    close = [p.place for p in disc.close_places]
     if close:
         text += f" A term at {_and(close)} explains it about as well: the trace cannot tell."
     heldout = {

@@ -17,7 +17,6 @@ from ewb_ident.diagnosis.discovery import (
     TermColumns,
     equation_of,
     inputs_of,
-    learned_term,
 )
 from ewb_ident.diagnosis.inputs import (
     PRODUCT,
@@ -167,3 +166,14 @@ class LearnedSpec(TermColumns):
 
     def equation(self, signals: Mapping[str, Signal], coef: Sequence[float] | None = None) -> str:
         return equation_of(self.place, self.terms, self.coef if coef is None else coef, signals)
+
+
+def learned_term(place: str, labels: Sequence[str], coef: Sequence[float]) -> LearnedTerm:
+    """A :class:`LearnedTerm` whose optimiser coordinates are its coefficients over
+    their own sizes."""
+    return LearnedTerm(
+        place=place,
+        names=tuple(labels),
+        scales=tuple(float(max(abs(c), 1e-12)) for c in coef),
+        coef=np.asarray(coef, float),
+    )
