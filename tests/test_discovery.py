@@ -120,6 +120,30 @@ def test_a_periodic_term_is_found_at_the_period_the_residual_shows():
     assert top.heldout["excess_share"] >= 0.8
 
 
+RIPPLE = 0.04  # the clamping force varies by 4 % around a disc turn
+
+
+def test_a_coefficient_that_varies_around_the_disc_is_learned_as_a_product():
+    """A disc of uneven thickness: the clamping force is ``F (1 + e sin(phi_d + phase))``
+    around each turn of the disc. The learned function multiplies the force by a
+    harmonic of the disc angle (a carrier times a periodic input), and the distilled
+    equation is that product with the planted amplitude."""
+    trace, run, _ = _clean()
+    F = run.states["force_N"]
+    truth = RIPPLE * F * np.sin(inputs.disc_angle(trace) + 0.4)
+    res = diagnose(_with({"force_N": F + truth}, "thickness"))
+    (top,) = res.findings
+    assert top.place in ("force.output", "sensor.force_N")
+    assert set(top.depends_on) == {"force", "disc_angle"}
+    m = re.fullmatch(
+        r"Δ(?:F|force_N) = \+?([0-9.e+-]+)·F·sin\(φ_d ([+-][0-9.]+)\) \[N\]", top.equation
+    )
+    assert m, top.equation
+    assert float(m.group(1)) == pytest.approx(RIPPLE, rel=0.1)
+    assert float(m.group(2)) == pytest.approx(0.4, abs=0.1)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.2 * np.sqrt(np.mean(truth**2))
+
+
 def test_a_term_acting_on_one_side_of_a_signed_input_is_learned_as_such():
     """A damper that acts only while the piston closes, c max(0, dx/dt) (a one-way
     valve): the learned function of a signed input is not only odd; the distilled
@@ -466,3 +490,25 @@ def test_an_armature_that_heats_and_cools_is_learned_on_its_thermal_state(tmp_pa
     assert top.place == "motor.electrical"
     assert set(top.depends_on) == {"current", "heat_history_0.5s"}
     assert top.heldout["excess_share"] >= 0.5
+
+
+def test_a_sensor_term_takes_no_input_computed_from_the_channel_it_explains():
+    """A term at the force sensor shows in the force stage and the torque stage it feeds;
+    the torque among its inputs is the model's brake torque of the model's force, not of
+    the recorded force, which carries the very mismatch (a damper here) the term is to
+    explain: the input would reconstruct the residual."""
+    from ewb_ident.diagnosis.session import Session, model_channels
+    from ewb_ident.model.physics import brake_torque
+
+    trace = damped_force_trace()
+    ses = Session(trace)
+    ses.baseline()
+    fit = ses.fit(("force", "torque"), ())
+    model = model_channels(ses, fit)
+    mu = fit.values["mu"]
+    from_model = np.asarray(brake_torque(model["force_N"], mu, trace.r_eff_m))
+    np.testing.assert_allclose(model["torque_Nm"], from_model, rtol=1e-12)
+    recorded = np.asarray(brake_torque(trace["force_N"], mu, trace.r_eff_m))
+    _, run, _ = _clean()
+    damper = 2 * mu * trace.r_eff_m * DAMPING_NS_PER_M * np.gradient(run.states["x_m"], trace.dt)
+    assert np.std(recorded - model["torque_Nm"]) > 0.5 * np.std(damper)

@@ -69,37 +69,42 @@ from validation_rigs.uncatalogued_rig import (
 
 FAMILIES: dict[str, dict] = {
     "torque_current_crosstalk": {
-        "stage": "torque", "place": "sensor.torque_Nm",
+        "stage": "torque",
+        "place": "sensor.torque_Nm",
         "depends_on": {"a": ["current"], "b": ["current"]},
         "words": "torque reading picks up the motor current: a T + k i, b T + k |i|",
     },
     "disc_runout": {
-        "stage": "force", "place": {"a": "force.input", "b": "force.output"},
+        "stage": "force",
+        "place": {"a": "force.input", "b": "force.output"},
         "depends_on": {"a": ["disc_angle"], "b": ["disc_angle", "force"]},
         "words": "disc thickness variation once per revolution: a bell(x + e sin(phi_d+phi0)), "
         "b F (1 + eps sin(phi_d + phi0))",
     },
     "driver_lag": {
-        "stage": "motor", "place": "motor.electrical",
+        "stage": "motor",
+        "place": "motor.electrical",
         "depends_on": {"a": ["voltage", "voltage_history"], "b": ["voltage"]},
         "words": "power stage: a output filter tau_d dV_eff/dt = V - V_eff, "
         "b dead band V_eff = sign(V) max(|V| - V_d, 0)",
     },
     "torque_ripple": {
-        "stage": "motor", "place": {"a": "motor.mechanical",
-                                    "b": "motor.mechanical+motor.electrical"},
+        "stage": "motor",
+        "place": {"a": "motor.mechanical", "b": "motor.mechanical+motor.electrical"},
         "depends_on": {"a": ["angle", "current"], "b": ["angle", "current", "speed"]},
         "words": "commutation ripple, period 60 deg: a kT i (1 + eps sin(2 pi th/P + phi)), "
         "b the same ripple in kT and kb",
     },
     "pad_stiffness_heating": {
-        "stage": "force", "place": "force.input",
+        "stage": "force",
+        "place": "force.input",
         "depends_on": {"a": ["x", "energy"], "b": ["x", "energy_history"]},
         "words": "bell width grows as the pad heats: a a (1 + s E/E_end), "
         "b a (1 + s Q/Q_max), Q braking power low-passed over 1 s",
     },
     "encoder_eccentricity": {
-        "stage": "motor", "place": "sensor.theta_deg",
+        "stage": "motor",
+        "place": "sensor.theta_deg",
         "depends_on": {"a": ["angle"], "b": ["angle"]},
         "words": "encoder reading theta + A sin(2 pi theta / P + phi): a P 360 deg, b P 120 deg",
     },
@@ -112,26 +117,34 @@ _MOTOR = {"driver_lag", "torque_ripple"}
 #: Starting strength ranges (lo, hi), open loop / closed loop; the rescale rule of the
 #: uncatalogued rig then makes each case visible and concealed.
 _SIZE: dict[tuple[str, str], dict] = {
-    ("torque_current_crosstalk", "a"): {"open": (1.0, 3.0), "closed": (1.0, 3.0),
-                                        "unit": "k [N m/A]"},
-    ("torque_current_crosstalk", "b"): {"open": (1.0, 3.0), "closed": (1.0, 3.0),
-                                        "unit": "k [N m/A]"},
+    ("torque_current_crosstalk", "a"): {
+        "open": (1.0, 3.0),
+        "closed": (1.0, 3.0),
+        "unit": "k [N m/A]",
+    },
+    ("torque_current_crosstalk", "b"): {
+        "open": (1.0, 3.0),
+        "closed": (1.0, 3.0),
+        "unit": "k [N m/A]",
+    },
     ("disc_runout", "a"): {"open": (1e-6, 3e-6), "closed": (1e-6, 3e-6), "unit": "e [m]"},
-    ("disc_runout", "b"): {"open": (0.005, 0.015), "closed": (0.005, 0.015),
-                           "unit": "eps [-]"},
-    ("driver_lag", "a"): {"open": (0.001, 0.003), "closed": (0.001, 0.003),
-                          "unit": "tau_d [s]"},
+    ("disc_runout", "b"): {"open": (0.005, 0.015), "closed": (0.005, 0.015), "unit": "eps [-]"},
+    ("driver_lag", "a"): {"open": (0.001, 0.003), "closed": (0.001, 0.003), "unit": "tau_d [s]"},
     ("driver_lag", "b"): {"open": (0.01, 0.03), "closed": (0.05, 0.15), "unit": "V_d [V]"},
     ("torque_ripple", "a"): {"open": (0.01, 0.03), "closed": (0.02, 0.06), "unit": "eps [-]"},
     ("torque_ripple", "b"): {"open": (0.01, 0.03), "closed": (0.02, 0.06), "unit": "eps [-]"},
-    ("pad_stiffness_heating", "a"): {"open": (0.01, 0.03), "closed": (0.01, 0.03),
-                                     "unit": "relative growth of a at E_end [-]"},
-    ("pad_stiffness_heating", "b"): {"open": (0.01, 0.03), "closed": (0.01, 0.03),
-                                     "unit": "relative growth of a at Q_max [-]"},
-    ("encoder_eccentricity", "a"): {"open": (0.1, 0.3), "closed": (0.1, 0.3),
-                                    "unit": "A [deg]"},
-    ("encoder_eccentricity", "b"): {"open": (0.1, 0.3), "closed": (0.1, 0.3),
-                                    "unit": "A [deg]"},
+    ("pad_stiffness_heating", "a"): {
+        "open": (0.01, 0.03),
+        "closed": (0.01, 0.03),
+        "unit": "relative growth of a at E_end [-]",
+    },
+    ("pad_stiffness_heating", "b"): {
+        "open": (0.01, 0.03),
+        "closed": (0.01, 0.03),
+        "unit": "relative growth of a at Q_max [-]",
+    },
+    ("encoder_eccentricity", "a"): {"open": (0.1, 0.3), "closed": (0.1, 0.3), "unit": "A [deg]"},
+    ("encoder_eccentricity", "b"): {"open": (0.1, 0.3), "closed": (0.1, 0.3), "unit": "A [deg]"},
 }
 
 
@@ -200,8 +213,9 @@ def effect_params(family: str, form: str, s: float, ex: dict) -> dict:
     return prm
 
 
-def probe_chain(p: dict, mot: dict, dt: float, w_disc: float, family: str, form: str,
-                prm: dict) -> tuple[dict, np.ndarray, np.ndarray, str]:
+def probe_chain(
+    p: dict, mot: dict, dt: float, w_disc: float, family: str, form: str, prm: dict
+) -> tuple[dict, np.ndarray, np.ndarray, str]:
     """Noise-free readings with the probe effect (motor effects are already in ``mot``)."""
     rec, _, _, _ = chain(p, mot, dt, w_disc)
     th, cur = mot["th"], mot["i"]
@@ -254,9 +268,17 @@ def probe_chain(p: dict, mot: dict, dt: float, w_disc: float, family: str, form:
     raise ValueError(family)
 
 
-def make_case(family: str, form: str, seed: int, index: int, *, rate_hz: float | None = None,
-              profile: str | None = None, has_current: bool | None = None,
-              duration_s: float | None = None) -> Case:
+def make_case(
+    family: str,
+    form: str,
+    seed: int,
+    index: int,
+    *,
+    rate_hz: float | None = None,
+    profile: str | None = None,
+    has_current: bool | None = None,
+    duration_s: float | None = None,
+) -> Case:
     """One probe case, drawn as ``uncatalogued_rig.make_case`` draws its cases."""
     if family not in FAMILIES or form not in ("a", "b"):
         raise ValueError(f"unknown family/form {family}/{form}")
@@ -313,26 +335,53 @@ def make_case(family: str, form: str, seed: int, index: int, *, rate_hz: float |
         else:
             break
     place = info["place"][form] if isinstance(info["place"], dict) else info["place"]
-    truth: dict = {"family": family, "form": form, "nuisance": None, "nuisance_params": {},
-                   "stage": info["stage"], "place": place,
-                   "depends_on": list(info["depends_on"][form]), "words": info["words"],
-                   "strength_unit": size["unit"]}
+    truth: dict = {
+        "family": family,
+        "form": form,
+        "nuisance": None,
+        "nuisance_params": {},
+        "stage": info["stage"],
+        "place": place,
+        "depends_on": list(info["depends_on"][form]),
+        "words": info["words"],
+        "strength_unit": size["unit"],
+    }
     n_app, rel_ok, pk = _released(rec0["force_N"], p["F_rt"])
     table = _table(rec, mot["V"], t, e, sig, cur_on, w_disc, None, {}, p)
     truth.update(
-        params={"effect": prm, "rig": p}, profile=prof, rate=rate, duration_s=dur,
-        n_samples=n, n_cycles=n_cyc, theta0_deg=theta0, disc_speed_rad_s=w_disc,
-        noise_factor=factor, noise_sigma=sig, has_current=cur_on, visibility=vis,
-        concealed_force_pct=pf, concealed_torque_pct=pt, strength_drawn=s0,
+        params={"effect": prm, "rig": p},
+        profile=prof,
+        rate=rate,
+        duration_s=dur,
+        n_samples=n,
+        n_cycles=n_cyc,
+        theta0_deg=theta0,
+        disc_speed_rad_s=w_disc,
+        noise_factor=factor,
+        noise_sigma=sig,
+        has_current=cur_on,
+        visibility=vis,
+        concealed_force_pct=pf,
+        concealed_torque_pct=pt,
+        strength_drawn=s0,
         strength=hist[-1][0],
-        rescales=[dict(zip(("strength", "vis", "force_pct", "torque_pct"), h, strict=True))
-                  for h in hist],
-        term_input_name=tname, profile_info=plan["info"], applies_seen=n_app,
-        released_between=rel_ok, peak_force_frac=pk,
+        rescales=[
+            dict(zip(("strength", "vis", "force_pct", "torque_pct"), h, strict=True)) for h in hist
+        ],
+        term_input_name=tname,
+        profile_info=plan["info"],
+        applies_seen=n_app,
+        released_between=rel_ok,
+        peak_force_frac=pk,
     )
     desc = f"probe rig: {family}/{form}, profile {prof}, {rate} Hz; synthetic, see truth file"
-    sidecar = {"r_eff_m": p["r_eff"], "sample_rate_hz": rate, "disc_mode": "drag",
-               "hardware": "probe rig (independent simulator)", "description": desc}
+    sidecar = {
+        "r_eff_m": p["r_eff"],
+        "sample_rate_hz": rate,
+        "disc_mode": "drag",
+        "hardware": "probe rig (independent simulator)",
+        "description": desc,
+    }
     return Case(table, sidecar, truth, np.asarray(term, float), np.asarray(tin, float), tname)
 
 
@@ -352,13 +401,18 @@ def main(argv: list[str] | None = None) -> int:
                 name = f"{fam}_{form}_{i:03d}"
                 write_case(c, args.out, name)
                 tr = c.truth
-                ok = (tr["visibility"] >= 3.0 and max(tr["concealed_force_pct"],
-                      tr["concealed_torque_pct"]) < 10.0)
-                print(f"{name:34s} {tr['profile']:9s} {tr['rate']:5d} Hz cur={tr['has_current']!s:5s}"
-                      f" vis={tr['visibility']:6.2f} F%={tr['concealed_force_pct']:5.2f}"
-                      f" T%={tr['concealed_torque_pct']:5.2f} s={tr['strength']:.3g}"
-                      f" resc={len(tr['rescales'])} pk={tr['peak_force_frac']:.2f}"
-                      f" {'ok' if ok else 'FAIL'}", flush=True)
+                ok = (
+                    tr["visibility"] >= 3.0
+                    and max(tr["concealed_force_pct"], tr["concealed_torque_pct"]) < 10.0
+                )
+                print(
+                    f"{name:34s} {tr['profile']:9s} {tr['rate']:5d} Hz cur={tr['has_current']!s:5s}"
+                    f" vis={tr['visibility']:6.2f} F%={tr['concealed_force_pct']:5.2f}"
+                    f" T%={tr['concealed_torque_pct']:5.2f} s={tr['strength']:.3g}"
+                    f" resc={len(tr['rescales'])} pk={tr['peak_force_frac']:.2f}"
+                    f" {'ok' if ok else 'FAIL'}",
+                    flush=True,
+                )
     print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
 

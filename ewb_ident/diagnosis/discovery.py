@@ -60,20 +60,20 @@ from ewb_ident.diagnosis.heldout import (
 )
 from ewb_ident.diagnosis.inputs import (
     KNOTS,
-    PRODUCT,
     Column,
     Signal,
     carriers_of,
     input_signals,
     learned_groups,
     library,
-    model_channels,
     periodic,
+    product_of,
     render,
     render_pair,
     sensor_signal,
     stacked,
 )
+from ewb_ident.diagnosis.session import model_channels
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import motor_fine, zoh_exact
 from ewb_ident.model.params import PARAMS, EWBParams
@@ -280,7 +280,7 @@ def inputs_of(col: Column) -> tuple[str, ...]:
     """The signals a basis column depends on."""
     if col.form[0] == "one":
         return ()
-    return tuple(col.form[1:3]) if col.form[0] in PRODUCT else (col.signal,)
+    return tuple(col.form[1:3]) if product_of(col.form) is not None else (col.signal,)
 
 
 class TermColumns:
@@ -373,7 +373,7 @@ def equation_of(
     for t in terms:
         cs = coef[k : k + len(t)]
         k += len(t)
-        parts.append(render_pair(t, cs) if len(t) == 2 else render(t[0], cs[0], signals))
+        parts.append(render_pair(t, cs, signals) if len(t) == 2 else render(t[0], cs[0], signals))
     expr = " ".join(parts).lstrip("+")
     return f"{info.quantity} = {expr} [{info.unit}]"
 
@@ -456,9 +456,10 @@ SCAN_PERIODS = 160
 
 def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
     """The periods (deg) of a term periodic in the pinion angle that best explain the
-    residual at ``place``, estimated from the residual itself (a periodogram in the
-    angle, through the model's response at the place and orthogonal to what the stage's
-    parameters make), not taken from a list: a coarse scan over every period the trace
+    residual at ``place``, alone or times a carrier of the place (a torque constant that
+    ripples), estimated from the residual itself (a periodogram in the angle, through
+    the model's response at the place and orthogonal to what the stage's parameters
+    make), not taken from a list: a coarse scan over every period the trace
     covers (1.5 cycles or more) and resolves (4 samples a cycle or more), then each of
     the ``most`` best peaks refined. The held-out selection then judges them as any
     other input."""
@@ -477,15 +478,18 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
     Uj = _span(J) if J.shape[1] else np.zeros((r.size, 0))
     r_perp = r - Uj @ (Uj.T @ r)
 
+    carriers = [signals[c] for c in carriers_of(place) if c in signals and c != "angle"]
+    w = 2 * (1 + len(carriers))  # a harmonic alone and times each carrier of the place
+
     def gains(periods) -> np.ndarray:
         out = []
         for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
             chunk = periods[i : i + 16]
-            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
-            G = G_of(U)
+            U = [c.values for P in chunk for c in periodic(s, P, signals, carriers)]
+            G = G_of(np.stack(U, axis=1))
             G = G - Uj @ (Uj.T @ G)
             for k in range(len(chunk)):
-                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
+                Q, R = np.linalg.qr(G[:, w * k : w * k + w])
                 Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
                 out.append(float(np.sum((Q.T @ r_perp) ** 2)))
         return np.asarray(out)

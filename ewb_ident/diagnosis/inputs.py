@@ -12,7 +12,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.locate import disc_angle
 from ewb_ident.model.physics import DEG_PER_RAD
 
@@ -93,10 +92,11 @@ def input_signals(
     trace
         The trace.
     model
-        Model series that replace recorded channels (:func:`model_channels`: the
-        outputs of the stages a term is fitted at and what follows from them, which as
-        recorded would carry the very mismatch the term is to explain), and of channels
-        the trace does not record, in the channel's unit.
+        Model series that replace recorded channels
+        (:func:`~ewb_ident.diagnosis.session.model_channels`: the outputs of the stages a
+        term is fitted at and what follows from them, which as recorded would carry the
+        very mismatch the term is to explain), and of channels the trace does not record,
+        in the channel's unit.
     fine
         The motor's states within each sample interval (:func:`motor_fine`): a term
         inside the motor's integration depends on them there, so they replace the
@@ -153,14 +153,8 @@ def input_signals(
         # thermal lag (a winding, a driver stage, a shunt), one per time constant.
         for tau in HISTORY_S:
             words = f"the squared current low-passed over {tau:g} s (a temperature rise)"
-            add(
-                f"heat_history_{tau:g}s",
-                _lowpass(per, dt, tau),
-                "A^2",
-                "level",
-                words,
-                f"ī²{tau:g}s",
-            )
+            name, sym = f"heat_history_{tau:g}s", f"ī²{tau:g}s"
+            add(name, _lowpass(per, dt, tau), "A^2", "level", words, sym)
     levels = (
         ("x_m", "x", "m", "the piston displacement", "x", "the piston speed"),
         ("force_N", "force", "N", "the clamping force", "F", "the rate of the force"),
@@ -185,14 +179,8 @@ def input_signals(
         add(
             "distance", _integral(np.abs(wd), dt), "rad", "level", "the disc's sliding angle", "s_d"
         )
-        add(
-            "disc_angle",
-            np.mod(disc_angle(trace), 2 * np.pi),
-            "rad",
-            "phase",
-            "the disc angle",
-            "φ_d",
-        )
+        phi = np.mod(disc_angle(trace), 2 * np.pi)
+        add("disc_angle", phi, "rad", "phase", "the disc angle", "φ_d")
         if "torque" in out:
             add(
                 "energy",
@@ -202,47 +190,6 @@ def input_signals(
                 "the braking energy dissipated",
                 "E",
             )
-    return out
-
-
-def model_channels(ses, fit) -> dict[str, np.ndarray]:
-    """Model series for the inputs of a term fitted with ``fit``: its stages' own
-    outputs as it predicts them and the channels that follow from them along the chain
-    (the gap curve, the bell, the brake torque of the fit's values), and the motor's
-    current where the trace records none. Recorded, these channels would carry the
-    mismatch itself: a term could explain the force by the recorded force."""
-    from ewb_ident.model.physics import brake_torque, clamp_force, gap
-
-    v = dict(ses.values) | dict(fit.values)
-    tr = ses.trace
-    half = max(1, round(0.005 / tr.dt))
-    out: dict[str, np.ndarray] = {}
-    # A teacher-forced stage's prediction carries its measured input's noise, which is
-    # in the residual too: the stage is evaluated at the input's leave-one-out average.
-    for st in fit.stages:
-        if st == "motor":
-            for ch in STAGE_OUTPUTS[st]:
-                if ch in fit.predictions[0]:
-                    out[ch] = np.asarray(fit.predictions[0][ch], float)
-        elif st == "gap":
-            th = leave_one_out(tr["theta_deg"], half)
-            out["x_m"] = np.asarray(gap(th, v["p2"], v["p1"], v["p0"]))
-        elif st == "force":
-            x = leave_one_out(tr["x_m"], half)
-            out["force_N"] = np.asarray(clamp_force(x, v["F_rt"], v["a"], v["b"], v["c"]))
-        elif st == "torque":
-            F = leave_one_out(tr["force_N"], half)
-            out["torque_Nm"] = np.asarray(brake_torque(F, v["mu"], tr.r_eff_m))
-    if "theta_deg" in out and "x_m" not in out:
-        out["x_m"] = np.asarray(gap(out["theta_deg"], v["p2"], v["p1"], v["p0"]))
-    if "x_m" in out and "force_N" not in out:
-        out["force_N"] = np.asarray(clamp_force(out["x_m"], v["F_rt"], v["a"], v["b"], v["c"]))
-    if "force_N" in out and "torque_Nm" not in out:
-        out["torque_Nm"] = np.asarray(brake_torque(out["force_N"], v["mu"], ses.trace.r_eff_m))
-    mot = ses.base_fits.get("motor")
-    if not tr.has("current_A") and "current_A" not in out:
-        if mot is not None and "current_A" in mot.predictions[0]:
-            out["current_A"] = np.asarray(mot.predictions[0]["current_A"], float)
     return out
 
 
@@ -297,6 +244,8 @@ CARRIERS: dict[str, tuple[str, ...]] = {
     "motor.electrical": ("current",),
     "motor.mechanical": ("current", "speed"),
     "drive": ("force",),
+    "gap": ("angle",),
+    "force.input": ("x",),
     "force.output": ("force",),
     "torque.output": ("force",),
 }
@@ -319,6 +268,15 @@ def carriers_of(place: str) -> tuple[str, ...]:
 TRIG = {"sin": np.sin, "cos": np.cos}
 #: A product's function of its second input (its first, the carrier, is normalised).
 PRODUCT = {"prod": ("pow", 1), "prod2": ("pow", 2), "prodabs": ("abs",)}
+
+
+def product_of(form: tuple) -> tuple | None:
+    """The form of the function of its second input a product column has (a carrier
+    times a power, or ``prodtrig``: times a harmonic of a phase or an angle period), or
+    ``None`` for a column that is not a product."""
+    if form[0] in PRODUCT:
+        return PRODUCT[form[0]]
+    return tuple(form[3:]) if form[0] == "prodtrig" else None
 
 
 def form_fn(form: tuple, r: float):
@@ -362,9 +320,9 @@ def form_values(
     form
         ``(kind, *args)``: ``pow``, ``spow``, ``abs``, ``tanh``, ``sqrt``, ``sat``,
         ``hinge``, ``nhinge`` (the hinge of the negated signal), ``ohinge`` (the odd
-        hinge of the magnitude), ``harm``, ``period`` of
-        ``signal``; ``prod``, ``prod2``, ``prodabs``
-        of the carrier ``form[1]`` times a function of ``form[2]``; ``one``.
+        hinge of the magnitude), ``harm``, ``period`` of ``signal``; ``prod``, ``prod2``,
+        ``prodabs``, ``prodtrig`` of the carrier ``form[1]`` times a function of
+        ``form[2]`` (:func:`product_of`); ``one``.
     signal
         The input it depends on (a product's: ``"carrier*other"``).
     signals
@@ -381,9 +339,10 @@ def form_values(
     def ref(name: str) -> float:
         return float(refs[name]) if refs is not None else signals[name].ref
 
-    if kind in PRODUCT:
+    second = product_of(form)
+    if second is not None:
         c, s = signals[form[1]], signals[form[2]]
-        fn, rc = form_fn(PRODUCT[kind], ref(form[2])), ref(form[1])
+        fn, rc = form_fn(second, ref(form[2])), ref(form[1])
         if c.fine is not None and s.fine is not None:
             return interval_mean(c.fine / rc * fn(s.fine))
         return ev(c, lambda v: v / rc) * ev(s, fn)
@@ -411,11 +370,27 @@ def _products(c: Signal, s: Signal, signals: Mapping[str, Signal]) -> list[Colum
     return cols
 
 
-def periodic(s: Signal, period: float, signals) -> list[Column]:
-    """A sine and cosine of the angle ``s`` with ``period`` (degrees)."""
-    return [
+def trig_products(c: Signal, s: Signal, arg: tuple, signals) -> list[Column]:
+    """The carrier ``c`` times a sine and cosine of the phase or angle ``s`` (``arg``:
+    ``("harm", k)`` or ``("period", P)``): a coefficient that varies around a turn."""
+    out = []
+    for col in (
+        periodic(s, arg[1], signals) if arg[0] == "period" else _harmonic(s, arg[1], signals)
+    ):
+        form = ("prodtrig", c.name, s.name, *col.form)
+        out.append(_col(f"{c.symbol}·{col.label}", f"{c.name}*{s.name}", form, signals))
+    return out
+
+
+def periodic(s: Signal, period: float, signals, carriers: Sequence[Signal] = ()) -> list[Column]:
+    """A sine and cosine of the angle ``s`` with ``period`` (degrees), and each times
+    every signal in ``carriers``."""
+    cols = [
         _col(f"{f}(2π{s.symbol}/{period:.4g}°)", s.name, ("period", period, f), signals)
         for f in TRIG
+    ]
+    return cols + [
+        c for car in carriers for c in trig_products(car, s, ("period", period), signals)
     ]
 
 
@@ -427,7 +402,8 @@ def _harmonic(s: Signal, k: int, signals) -> list[Column]:
 def _signed(s: Signal, signals) -> list[Column]:
     """The odd functions of a signed input, with the odd hinges of its magnitude beyond
     a knot (a clipping or a dead zone; its even part and one-sided forms are the
-    distillation library's: :func:`library`)."""
+    distillation library's: :func:`library`: in the learned function its magnitude took
+    the voltage as a proxy for a damper's piston speed)."""
     return [
         _col(s.symbol, s.name, ("pow", 1), signals),
         _col(f"{s.symbol}|{s.symbol}|", s.name, ("spow", 2), signals),
@@ -484,6 +460,15 @@ def learned_groups(
         for s in signals.values():
             if s.name != cname and s.kind in ("level", "signed"):
                 groups[f"{cname}*{s.name}"] = _products(c, s, signals)
+            elif s.kind == "phase":
+                groups[f"{cname}*{s.name}"] = [
+                    col for k in (1, 2) for col in trig_products(c, s, ("harm", k), signals)
+                ]
+            elif s.kind == "angle" and s.name != cname:
+                for P in periods:
+                    groups[f"{cname}*{s.name}@{P:.4g}"] = trig_products(
+                        c, s, ("period", P), signals
+                    )
     for s in signals.values():
         if s.kind == "signed":
             groups[s.name] = _signed(s, signals)
@@ -510,7 +495,15 @@ def library(signals: Mapping[str, Signal], chosen: Sequence[str], knots=(0.5,)) 
             continue
         if "*" in g:  # a carrier times another input
             cname, _, other = g.partition("*")
-            items += [[c] for c in _products(signals[cname], signals[other], signals)]
+            c, (oname, _, per) = signals[cname], other.partition("@")
+            if per:
+                args = [("period", float(per) / h) for h in (1, 2)]
+            elif signals[oname].kind == "phase":
+                args = [("harm", k) for k in (1, 2)]
+            else:
+                items += [[col] for col in _products(c, signals[oname], signals)]
+                continue
+            items += [trig_products(c, signals[oname], a, signals) for a in args]
             continue
         name, _, per = g.partition("@")
         s = signals[name]
@@ -569,6 +562,9 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
     if kind == "prodabs":
         a, b = signals[col.form[1]], signals[col.form[2]]
         return f"{a.symbol}·|{b.symbol}|", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
+    if kind == "prodtrig":
+        a = signals[col.form[1]]
+        return col.label, 1.0 / a.ref, a.unit
     s = signals[col.signal]
     if kind == "pow":
         p = col.form[1]
@@ -605,9 +601,11 @@ def render(col: Column, coef: float, signals: Mapping[str, Signal]) -> str:
     return f"{coef * factor:+.4g}" if expr == "1" else f"{coef * factor:+.4g}·{expr}"
 
 
-def render_pair(cols: Sequence[Column], coefs: Sequence[float]) -> str:
-    """A sine and cosine pair as one harmonic, ``A·sin(... + phase)``."""
-    (cs, cc) = coefs
+def render_pair(cols: Sequence[Column], coefs: Sequence[float], signals) -> str:
+    """A sine and cosine pair as one harmonic, ``A·sin(... + phase)`` (a carrier's
+    product: ``A·c·sin(... + phase)``)."""
+    factor = physical(cols[0], signals)[1]
+    cs, cc = (float(c) * factor for c in coefs)
     amp, phase = float(np.hypot(cs, cc)), float(np.arctan2(cc, cs))
-    arg = cols[0].label[4:-1]
-    return f"{amp:+.4g}·sin({arg} {phase:+.2f})"
+    head, _, arg = cols[0].label.partition("sin(")
+    return f"{amp:+.4g}·{head}sin({arg[:-1]} {phase:+.2f})"

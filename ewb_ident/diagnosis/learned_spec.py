@@ -19,12 +19,12 @@ from ewb_ident.diagnosis.discovery import (
     inputs_of,
 )
 from ewb_ident.diagnosis.inputs import (
-    PRODUCT,
     Column,
     Signal,
     form_fn,
     form_values,
     input_signals,
+    product_of,
     stacked,
 )
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
@@ -103,7 +103,7 @@ class LearnedSpec(TermColumns):
             )
             for c in spec.columns:
                 if c.form[0] != "one":
-                    form_fn(PRODUCT.get(c.form[0], c.form), 1.0)
+                    form_fn(product_of(c.form) or c.form, 1.0)
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise TermError(
                 f"{where}: not a learned term's basis ({type(err).__name__}: {err}); use the "

@@ -18,9 +18,11 @@ from ewb_ident.data.stages import (
     STAGE,
     STAGE_COLUMNS,
     STAGE_OUTPUTS,
+    STAGES,
     TEACHER_FORCED,
 )
 from ewb_ident.data.trace import InputError, Trace
+from ewb_ident.diagnosis.inputs import leave_one_out
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
@@ -452,3 +454,48 @@ def current_demand(trace: Trace, kb: float, R: float) -> float:
 def stall_torque(trace: Trace, kT: float, R: float) -> float:
     """The motor's stall torque at the trace's largest voltage, N*m."""
     return kT * float(np.max(np.abs(trace["voltage_V"]))) / R
+
+
+def model_channels(ses, fit) -> dict[str, np.ndarray]:
+    """Model series for the inputs of a term fitted with ``fit``: its stages' own
+    outputs as it predicts them and the channels that follow from them along the chain
+    (the gap curve, the bell, the brake torque of the fit's values), and the motor's
+    current where the trace records none. Recorded, these channels would carry the
+    mismatch itself: a term could explain the force by the recorded force, or (a
+    sensor's term, fitted at the stage it feeds too) by the torque computed from it."""
+    from ewb_ident.model.physics import brake_torque, gap
+
+    v = dict(ses.values) | dict(fit.values)
+    tr = ses.trace
+    half = max(1, round(0.005 / tr.dt))
+    out: dict[str, np.ndarray] = {}
+
+    def given(ch):  # a stage's input: the model's where an earlier stage predicts it
+        return out[ch] if ch in out else leave_one_out(tr[ch], half)
+
+    # A teacher-forced stage's prediction carries its measured input's noise, which is
+    # in the residual too: the stage is evaluated at the input's leave-one-out average.
+    for st in sorted(fit.stages, key=STAGES.index):
+        if st == "motor":
+            for ch in STAGE_OUTPUTS[st]:
+                if ch in fit.predictions[0]:
+                    out[ch] = np.asarray(fit.predictions[0][ch], float)
+        elif st == "gap":
+            out["x_m"] = np.asarray(gap(given("theta_deg"), v["p2"], v["p1"], v["p0"]))
+        elif st == "force":
+            out["force_N"] = np.asarray(
+                clamp_force(given("x_m"), v["F_rt"], v["a"], v["b"], v["c"])
+            )
+        elif st == "torque":
+            out["torque_Nm"] = np.asarray(brake_torque(given("force_N"), v["mu"], tr.r_eff_m))
+    if "theta_deg" in out and "x_m" not in out:
+        out["x_m"] = np.asarray(gap(out["theta_deg"], v["p2"], v["p1"], v["p0"]))
+    if "x_m" in out and "force_N" not in out:
+        out["force_N"] = np.asarray(clamp_force(out["x_m"], v["F_rt"], v["a"], v["b"], v["c"]))
+    if "force_N" in out and "torque_Nm" not in out:
+        out["torque_Nm"] = np.asarray(brake_torque(out["force_N"], v["mu"], ses.trace.r_eff_m))
+    mot = ses.base_fits.get("motor")
+    if not tr.has("current_A") and "current_A" not in out:
+        if mot is not None and "current_A" in mot.predictions[0]:
+            out["current_A"] = np.asarray(mot.predictions[0]["current_A"], float)
+    return out
