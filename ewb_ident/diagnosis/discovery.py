@@ -456,8 +456,8 @@ SCAN_PERIODS = 160
 
 def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
     """The periods (deg) of a term periodic in the pinion angle that best explain the
-    residual at ``place``, alone or times a carrier of the place (a torque constant that
-    ripples), estimated from the residual itself (a periodogram in the angle, through
+    residual at ``place``, alone or times the place's first carrier (a torque constant
+    that ripples), estimated from the residual itself (a periodogram in the angle, through
     the model's response at the place and orthogonal to what the stage's parameters
     make), not taken from a list: a coarse scan over every period the trace
     covers (1.5 cycles or more) and resolves (4 samples a cycle or more), then each of
@@ -478,8 +478,8 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
     Uj = _span(J) if J.shape[1] else np.zeros((r.size, 0))
     r_perp = r - Uj @ (Uj.T @ r)
 
-    carriers = [signals[c] for c in carriers_of(place) if c in signals and c != "angle"]
-    w = 2 * (1 + len(carriers))  # a harmonic alone and times each carrier of the place
+    carriers = [signals[c] for c in carriers_of(place)[:1] if c in signals and c != "angle"]
+    w = 2 * (1 + len(carriers))
 
     def gains(periods) -> np.ndarray:
         out = []
