@@ -539,13 +539,10 @@ LOCAL: dict[str, tuple[str, ...]] = {
 
 
 #: Signals a place's term cannot depend on, by physics: the voltage the driver applies
-#: reaches the shaft and everything after it only through the current, which is an
-#: input (it acts on the motor's electrical equation and, as crosstalk, on a sensor).
-NOT_INPUTS: dict[str, tuple[str, ...]] = {
-    p: ("voltage", "voltage_rate")
-    for p in PLACES
-    if p != "motor.electrical" and not p.startswith("sensor.")
-}
+#: acts on the motor's electrical equation; the shaft, everything after it and the
+#: sensors see it only through the current, which is an input (a sensor's crosstalk is
+#: the current's; a logged voltage is the driver's mean, not its switching).
+NOT_INPUTS = {p: ("voltage", "voltage_rate") for p in PLACES if p != "motor.electrical"}
 
 
 def _is_local(group: str, local: Sequence[str]) -> bool:
