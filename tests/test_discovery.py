@@ -450,6 +450,34 @@ def test_a_temperature_rise_that_cools_is_an_input_and_a_clipping_is_in_the_basi
     assert col.label.startswith("sign(i)·max(0, |i| − ")
 
 
+def test_the_filters_equal_scipy_signals_bit_for_bit():
+    """The low-pass and the convolution discovery computes without importing
+    scipy.signal give SciPy's numbers bit for bit (signed zeros, layouts, many lengths),
+    so a diagnosis is the same as with SciPy's own."""
+    from scipy.signal import fftconvolve, lfilter
+
+    from ewb_ident.diagnosis.filters import fft_convolve_columns, first_order_lowpass
+
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        n = int(rng.integers(1, 1500))
+        y = rng.normal(size=n) * 10.0 ** int(rng.integers(-6, 6))
+        if trial % 2:
+            y[rng.random(n) < 0.3] = 0.0
+            y[rng.random(n) < 0.1] *= -0.0
+        a = float(np.exp(-float(rng.choice([1e-3, 5e-3])) / float(rng.choice([0.1, 2.0, 1e-4]))))
+        ref = lfilter([1.0 - a], [1.0, -a], y, zi=[a * y[0]])[0]
+        got = first_order_lowpass(y, 1.0 - a, a, a * y[0])
+        assert got.dtype == ref.dtype and got.tobytes() == ref.tobytes()
+        m, k = int(rng.integers(2, 1500)), int(rng.integers(1, 6))
+        h = rng.normal(size=(m, 2, 2))
+        U = rng.normal(size=(m, k))
+        U = np.asfortranarray(U) if trial % 3 else U
+        ref = fftconvolve(h[:, 1, 0][:, None], U, axes=0)
+        got = fft_convolve_columns(h[:, 1, 0], U)
+        assert got.strides == ref.strides and got.tobytes() == ref.tobytes()
+
+
 @pytest.mark.slow
 def test_an_armature_that_heats_and_cools_is_learned_on_its_thermal_state(tmp_path):
     """Armature heating on an independent rig, R = R0 (1 + h) with h the squared current

@@ -49,9 +49,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.signal import fftconvolve
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
+from ewb_ident.diagnosis.filters import fft_convolve_columns
 from ewb_ident.diagnosis.heldout import (
     HELDOUT_BIC,
     RIDGES,
@@ -153,7 +153,7 @@ def place_effect(place: str, values: Mapping[str, float], trace) -> dict[str, An
 
         def conv(k_out):
             def op(U):
-                return fftconvolve(h[:, k_out, j][:, None], U, axes=0)[:n]
+                return fft_convolve_columns(h[:, k_out, j], U)[:n]  # scipy.signal.fftconvolve
 
             return op
 
