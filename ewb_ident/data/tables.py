@@ -142,6 +142,14 @@ _HEAD_BYTES = 1 << 16
 _BLOCK_BYTES = 1 << 20
 
 
+def _floats(column: Any) -> np.ndarray:
+    """The values of an Arrow float64 array without a missing cell: its data buffer, read
+    by NumPy (the same numbers as ``column.to_numpy()``, whose first call imports pandas:
+    0.3-0.4 s of every command that reads a CSV)."""
+    offset = 8 * column.offset
+    return np.frombuffer(column.buffers()[1], np.float64, count=len(column), offset=offset)
+
+
 def _read_csv_fast(path: Path, label: str, rows: int) -> RawTable | None:
     """A comma-, semicolon- or tab-separated CSV with decimal points, read by Arrow's
     parser block by block into typed columns (float64 for numbers; a column with any
@@ -218,9 +226,13 @@ def _read_csv_fast(path: Path, label: str, rows: int) -> RawTable | None:
                 size = grow
             null = np.ones(m, dtype=bool)
             for j, column in enumerate(batch.columns):
-                null &= column.is_null().to_numpy(zero_copy_only=False)
+                missing = column.null_count > 0  # else no Arrow to_numpy: see _floats
+                null &= column.is_null().to_numpy(zero_copy_only=False) if missing else False
                 if numeric[j]:
-                    columns[j][n : n + m] = column.to_numpy(zero_copy_only=False)
+                    plain = not missing and column.type == pa.float64()
+                    columns[j][n : n + m] = (
+                        _floats(column) if plain else column.to_numpy(zero_copy_only=False)
+                    )
                 else:
                     columns[j].append(column.to_numpy(zero_copy_only=False))
             empty[n : n + m] = null
