@@ -119,7 +119,7 @@ def motor_response(values: Mapping[str, float], dt: float, n: int) -> np.ndarray
     """Impulse responses of the motor (current A, angle deg) to a voltage (column 0) and
     to a load torque (column 1) held over one sample: ``h[k, out, inp]`` is the output
     at sample ``k`` after a unit input over sample 0 (the outputs lag by one sample)."""
-    A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
+    A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in "R L kb kT M v".split()), np)
     Ad, Bd = zoh_exact(A, np.stack([B_V, B_tau], axis=1), dt)
     h = np.zeros((n, 2, 2))
     x = Bd.copy()
