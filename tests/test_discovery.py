@@ -474,6 +474,38 @@ def test_a_temperature_rise_that_cools_is_an_input_and_a_clipping_is_in_the_basi
     assert col.label.startswith("sign(i)·max(0, |i| − ")
 
 
+def test_the_filters_equal_scipy_signals():
+    """The low-pass and the convolution discovery computes without importing
+    scipy.signal give SciPy's numbers (signed zeros, layouts, many lengths), to rounding:
+    they do SciPy's operations in its order (bit for bit with the SciPy they were written
+    against), so a diagnosis is the same as with SciPy's own."""
+    from scipy.signal import fftconvolve, lfilter
+
+    from ewb_ident.diagnosis.filters import fft_convolve_columns, first_order_lowpass
+
+    def same(got, ref):
+        assert got.dtype == ref.dtype and got.shape == ref.shape
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        n = int(rng.integers(1, 1500))
+        y = rng.normal(size=n) * 10.0 ** int(rng.integers(-6, 6))
+        if trial % 2:
+            y[rng.random(n) < 0.3] = 0.0
+            y[rng.random(n) < 0.1] *= -0.0
+        a = float(np.exp(-float(rng.choice([1e-3, 5e-3])) / float(rng.choice([0.1, 2.0, 1e-4]))))
+        same(
+            first_order_lowpass(y, 1.0 - a, a, a * y[0]),
+            lfilter([1.0 - a], [1.0, -a], y, zi=[a * y[0]])[0],
+        )
+        m, k = int(rng.integers(2, 1500)), int(rng.integers(1, 6))
+        h = rng.normal(size=(m, 2, 2))
+        U = rng.normal(size=(m, k))
+        U = np.asfortranarray(U) if trial % 3 else U
+        same(fft_convolve_columns(h[:, 1, 0], U), fftconvolve(h[:, 1, 0][:, None], U, axes=0))
+
+
 @pytest.mark.slow
 def test_an_armature_that_heats_and_cools_is_learned_on_its_thermal_state(tmp_path):
     """Armature heating on an independent rig, R = R0 (1 + h) with h the squared current

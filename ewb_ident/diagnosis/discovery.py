@@ -47,9 +47,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.signal import fftconvolve
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
+from ewb_ident.diagnosis.filters import fft_convolve_columns
 from ewb_ident.diagnosis.heldout import (
     HELDOUT_BIC,
     RIDGES,
@@ -111,7 +111,7 @@ def motor_response(values: Mapping[str, float], dt: float, n: int) -> np.ndarray
     """Impulse responses of the motor (current A, angle deg) to a voltage (column 0) and
     to a load torque (column 1) held over one sample: ``h[k, out, inp]`` is the output
     at sample ``k`` after a unit input over sample 0 (the outputs lag by one sample)."""
-    A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
+    A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in "R L kb kT M v".split()), np)
     Ad, Bd = zoh_exact(A, np.stack([B_V, B_tau], axis=1), dt)
     h = np.zeros((n, 2, 2))
     x = Bd.copy()
@@ -145,7 +145,7 @@ def place_effect(place: str, values: Mapping[str, float], trace) -> dict[str, An
 
         def conv(k_out):
             def op(U):
-                return fftconvolve(h[:, k_out, j][:, None], U, axes=0)[:n]
+                return fft_convolve_columns(h[:, k_out, j], U)[:n]  # scipy.signal.fftconvolve
 
             return op
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ewb_ident.diagnosis.filters import first_order_lowpass
 from ewb_ident.diagnosis.locate import disc_angle
 from ewb_ident.model.physics import DEG_PER_RAD
 
@@ -54,9 +55,7 @@ class Signal:
 
 def _lowpass(y: np.ndarray, dt: float, tau: float) -> np.ndarray:
     a = float(np.exp(-dt / tau))
-    from scipy.signal import lfilter
-
-    return lfilter([1.0 - a], [1.0, -a], y, zi=[a * y[0]])[0]
+    return first_order_lowpass(y, 1.0 - a, a, a * y[0])  # scipy.signal.lfilter's, exactly
 
 
 def _integral(y: np.ndarray, dt: float) -> np.ndarray:

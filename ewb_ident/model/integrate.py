@@ -404,7 +404,7 @@ def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
     are the motor stage's own prediction."""
     dt, n = trace.dt, trace.n
     m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
-    A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")))
+    A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")), np)
     Ad, bd = zoh_exact(A, B_V, dt / m)
     bd = bd[:, 0]
     V = trace["voltage_V"]

@@ -13,6 +13,8 @@ array or inside a traced program, in JAX.
 
 from __future__ import annotations
 
+from types import ModuleType
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,7 +28,9 @@ def _xp(*args):
     return jnp if any(isinstance(a, jax.Array) for a in args) else np
 
 
-def motor_matrices(R, L, kb, kT, M, v) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+def motor_matrices(
+    R, L, kb, kT, M, v, xp: ModuleType = jnp
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """State-space form of the DC motor (seed eqs. 2-3).
 
     ``V = L di/dt + R i + kb omega`` and ``M domega/dt + v omega = kT i - tau``.
@@ -36,6 +40,10 @@ def motor_matrices(R, L, kb, kT, M, v) -> tuple[jnp.ndarray, jnp.ndarray, jnp.nd
     R, L, kb, kT, M, v
         Resistance (ohm), inductance (H), back-EMF constant (V*s/rad), torque constant
         (N*m/A), inertia (kg*m^2), viscous friction (N*m*s/rad).
+    xp
+        The array module: JAX's NumPy, or NumPy for analyses of given numbers outside
+        a compiled program (the diagnosis's), where JAX would compile a small program
+        for each of the few operations (0.1-0.2 s of a diagnosis); the same numbers.
 
     Returns
     -------
@@ -46,17 +54,17 @@ def motor_matrices(R, L, kb, kT, M, v) -> tuple[jnp.ndarray, jnp.ndarray, jnp.nd
     B_tau : (3,) array
         Input vector of the load torque, per N*m (it opposes motion when positive).
     """
-    z = jnp.zeros_like(jnp.asarray(R, dtype=float))
+    z = xp.zeros_like(xp.asarray(R, dtype=float))
     one = z + 1.0
-    A = jnp.array(
+    A = xp.array(
         [
             [-R / L, -kb / L, z],
             [kT / M, -v / M, z],
             [z, one, z],
         ]
     )
-    B_V = jnp.array([1.0 / L, z, z])
-    B_tau = jnp.array([z, -1.0 / M, z])
+    B_V = xp.array([1.0 / L, z, z])
+    B_tau = xp.array([z, -1.0 / M, z])
     return A, B_V, B_tau
 
 

@@ -1,0 +1,83 @@
+"""Two filters of :mod:`scipy.signal` that discovery uses, computed as SciPy computes
+them, without importing ``scipy.signal``.
+
+Importing ``scipy.signal`` imports ``scipy.stats``, ``scipy.optimize``,
+``scipy.interpolate`` and ``scipy.spatial`` with it: about 1 s of processor time at
+every ``ewb-ident diagnose``, which uses none of them. Each function here does the same
+floating-point operations in the same order as its SciPy counterpart, so its results
+are SciPy's (bit for bit with SciPy 1.17; ``tests/test_discovery.py`` checks both
+against the installed SciPy's to rounding).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def first_order_lowpass(x: np.ndarray, b0: float, a1: float, z0: float) -> np.ndarray:
+    """``scipy.signal.lfilter([b0], [1.0, -a1], x, zi=[z0])[0]`` for a 1-D float ``x``.
+
+    SciPy's filter (transposed direct form II, its ``b`` padded with a zero to the
+    length of ``a``) computes, per sample, ``y = z + b0 * x`` and then
+    ``z = x * 0.0 - y * (-a1)``; this loop computes exactly that, in Python floats
+    (IEEE doubles, as SciPy's C loop). The loop costs some 0.1 us a sample.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        The signal (1-D, float64).
+    b0 : float
+        The feed-forward coefficient.
+    a1 : float
+        The feedback coefficient (``y[k] = b0 x[k] + a1 y[k-1]``).
+    z0 : float
+        The filter's initial state (SciPy's ``zi``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The filtered signal, float64, of ``x``'s length.
+    """
+    na1 = -a1
+    z = float(z0)
+    out = []
+    for xk in np.asarray(x, dtype=np.float64).tolist():
+        yk = z + b0 * xk
+        out.append(yk)
+        z = xk * 0.0 - yk * na1
+    return np.array(out, dtype=np.float64)
+
+
+def fft_convolve_columns(h: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """``scipy.signal.fftconvolve(h[:, None], U, axes=0)``: the full convolution of the
+    1-D ``h`` with each column of ``U`` (shape ``(len(h) + len(U) - 1, K)``).
+
+    As SciPy: both real inputs padded to the next fast length of the full convolution,
+    transformed with :func:`scipy.fft.rfftn` along the first axis, multiplied, and
+    transformed back with :func:`scipy.fft.irfftn`; the full length kept, as a copy.
+
+    Parameters
+    ----------
+    h : numpy.ndarray
+        The impulse response (1-D, real, at least 2 samples).
+    U : numpy.ndarray
+        The signals (2-D, real, at least 2 rows), one per column.
+
+    Returns
+    -------
+    numpy.ndarray
+        The convolutions, one per column of ``U``.
+    """
+    in1, in2 = np.asarray(h)[:, None], np.asarray(U)
+    if in1.shape[0] < 2 or in2.ndim != 2 or in2.shape[0] < 2 or in2.size == 0:
+        from scipy.signal import fftconvolve  # a case SciPy handles otherwise
+
+        return fftconvolve(in1, in2, axes=0)
+    from scipy import fft as sp_fft
+
+    full = in1.shape[0] + in2.shape[0] - 1
+    fshape = [sp_fft.next_fast_len(full, True)]
+    sp1 = sp_fft.rfftn(in1, fshape, axes=[0])
+    sp2 = sp_fft.rfftn(in2, fshape, axes=[0])
+    ret = sp_fft.irfftn(sp1 * sp2, fshape, axes=[0])
+    return np.array(ret[(slice(full), slice(max(in1.shape[1], in2.shape[1])))])
