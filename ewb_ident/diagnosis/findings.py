@@ -13,7 +13,7 @@ from ewb_ident.diagnosis.discovery import (
     Discovery,
     basis_matrix,
 )
-from ewb_ident.diagnosis.inputs import physical
+from ewb_ident.diagnosis.inputs import OWN_SIGNAL, physical
 from ewb_ident.diagnosis.learned_spec import LearnedSpec, learned_term
 from ewb_ident.diagnosis.locate import (
     PHASES,
@@ -259,6 +259,16 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
             + _and([f"{e} (ΔBIC {d:.0f})" for e, d in rivals])
             + ", explains less of it on held-out data."
         )
+    unrecorded = [
+        ch for ch in ("current_A", "x_m", "force_N", "torque_Nm") if not ses.trace.has(ch)
+    ]
+    modelled = [d for d in disc.depends_on if _source(d) in unrecorded]
+    if modelled:
+        text += (
+            f" It depends on the model's {_and(modelled)} (the trace records no "
+            f"{_and(sorted({_source(d) for d in modelled}))}): its shape is only as good as "
+            "the model's."
+        )
     close = [p.place for p in disc.close_places]
     if close:
         text += f" A term at {_and(close)} explains it about as well: the trace cannot tell."
@@ -297,6 +307,12 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
         term_series=basis_matrix(disc) @ np.asarray(coef, float),
         **_main_input(disc),
     )
+
+
+def _source(signal: str) -> str:
+    """The channel a signal is computed from (the heat and its histories: the current)."""
+    name = "current" if signal.startswith("heat") else signal.removesuffix("_rate")
+    return {v: k for k, v in OWN_SIGNAL.items()}.get(name, "")
 
 
 def _main_input(disc: Discovery) -> dict[str, Any]:
