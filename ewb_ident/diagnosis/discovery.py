@@ -456,13 +456,13 @@ SCAN_PERIODS = 160
 
 def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
     """The periods (deg) of a term periodic in the pinion angle that best explain the
-    residual at ``place``, alone or times the place's first carrier (a torque constant
-    that ripples), estimated from the residual itself (a periodogram in the angle, through
-    the model's response at the place and orthogonal to what the stage's parameters
-    make), not taken from a list: a coarse scan over every period the trace
-    covers (1.5 cycles or more) and resolves (4 samples a cycle or more), then each of
-    the ``most`` best peaks refined. The held-out selection then judges them as any
-    other input."""
+    residual at ``place``, estimated from the residual itself (a periodogram in the
+    angle, through the model's response at the place and orthogonal to what the stage's
+    parameters make; a harmonic times a carrier is not scanned: a current times a slow
+    harmonic took the place of a resistance that heats), not taken from a list: a coarse
+    scan over every period the trace covers (1.5 cycles or more) and resolves (4 samples
+    a cycle or more), then each of the ``most`` best peaks refined. The held-out
+    selection then judges them as any other input."""
     s = signals.get("angle")
     if s is None:
         return []
@@ -478,18 +478,15 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
     Uj = _span(J) if J.shape[1] else np.zeros((r.size, 0))
     r_perp = r - Uj @ (Uj.T @ r)
 
-    carriers = [signals[c] for c in carriers_of(place)[:1] if c in signals and c != "angle"]
-    w = 2 * (1 + len(carriers))
-
     def gains(periods) -> np.ndarray:
         out = []
         for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
             chunk = periods[i : i + 16]
-            U = [c.values for P in chunk for c in periodic(s, P, signals, carriers)]
-            G = G_of(np.stack(U, axis=1))
+            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
+            G = G_of(U)
             G = G - Uj @ (Uj.T @ G)
             for k in range(len(chunk)):
-                Q, R = np.linalg.qr(G[:, w * k : w * k + w])
+                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
                 Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
                 out.append(float(np.sum((Q.T @ r_perp) ** 2)))
         return np.asarray(out)

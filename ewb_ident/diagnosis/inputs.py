@@ -381,15 +381,11 @@ def trig_products(c: Signal, s: Signal, arg: tuple, signals) -> list[Column]:
     return out
 
 
-def periodic(s: Signal, period: float, signals, carriers: Sequence[Signal] = ()) -> list[Column]:
-    """A sine and cosine of the angle ``s`` with ``period`` (degrees), and each times
-    every signal in ``carriers``."""
-    cols = [
+def periodic(s: Signal, period: float, signals) -> list[Column]:
+    """A sine and cosine of the angle ``s`` with ``period`` (degrees)."""
+    return [
         _col(f"{f}(2π{s.symbol}/{period:.4g}°)", s.name, ("period", period, f), signals)
         for f in TRIG
-    ]
-    return cols + [
-        c for car in carriers for c in trig_products(car, s, ("period", period), signals)
     ]
 
 
