@@ -61,8 +61,7 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
     """The catalog mechanisms selected at a stage stay only if together they remove at
     least as much of the excess there as the best learned term does on held-out data
     (less :data:`CATALOG_MARGIN`), and the learned term fitted through the model in
-    their place (its distilled expression or a fallback of it) does not fit the stage
-    better by ``threshold`` in BIC (the share is
+    their place does not fit the stage better by ``threshold`` in BIC (the share is
     judged on the stage's channels together, where one channel's large mismatch can
     hide another's that the mechanism leaves). Otherwise they are dropped, the stage
     goes to discovery, and the catalog names become the learned term's rivals."""
@@ -85,15 +84,10 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
                 f"on held-out data against {100 * explained:.0f} % by {names}"
             )
         else:
-            # The distilled expression, then its fallbacks (other signals that move with
-            # the mismatch), each fitted through the model in the mechanisms' place.
-            gain = 0.0
-            for d in [disc, *disc.alternatives()] if disc.distilled.generalises else []:
-                res = fit_learned(ses, d, others, threshold)
-                if res is not None and res[0].stages == with_all.stages:
-                    gain = min(gain, bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"])
-                if gain <= -threshold:
-                    break
+            res = fit_learned(ses, disc, others, threshold) if disc.distilled.generalises else None
+            if res is None or res[0].stages != with_all.stages:
+                continue
+            gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
             if gain > -threshold:
                 continue
             why = (
