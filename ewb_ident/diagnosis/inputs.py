@@ -397,8 +397,7 @@ def _harmonic(s: Signal, k: int, signals) -> list[Column]:
 def _signed(s: Signal, signals) -> list[Column]:
     """The odd functions of a signed input, with the odd hinges of its magnitude beyond
     a knot (a clipping or a dead zone; its even part and one-sided forms are the
-    distillation library's: :func:`library`: in the learned function its magnitude took
-    the voltage as a proxy for a damper's piston speed)."""
+    distillation library's: :func:`library`)."""
     return [
         _col(s.symbol, s.name, ("pow", 1), signals),
         _col(f"{s.symbol}|{s.symbol}|", s.name, ("spow", 2), signals),
