@@ -110,3 +110,22 @@ def test_a_coarsely_quantised_angle_is_weighted_by_its_rounding_error():
         assert abs(motor.values[name] / getattr(rig, name) - 1) < 0.05, name
     # the angle is fitted to its rounding error, not to a fraction of a degree's bias
     assert motor.metrics["theta_deg"]["rmse"] < 1.2 * math.hypot(0.05, 0.9 / math.sqrt(12.0))
+
+
+def test_a_reading_held_on_its_grid_may_be_off_by_half_a_step():
+    """A 12-bit angle held at a few levels (a staircase in saturation): during each hold
+    its rounding error is one offset of up to half a step, not white noise of
+    q/sqrt(12); the phase's floor allows it, so a clean hold is no mismatch."""
+    from ewb_ident.diagnosis.locate import StageCheck, phase_floor_scale
+
+    q = 360.0 / 4096
+    ramp = np.arange(0.0, 60 * q, q / 3)  # moving: a new grid value every few samples
+    holds = np.repeat([(k + 0.45) * q for k in (120, 250, 400, 530)], 150)
+    truth = np.concatenate([ramp + 0.01, holds])
+    measured = np.round(truth / q) * q
+    sigma = np.full(truth.size, q / np.sqrt(12))
+    check = StageCheck("motor", "theta_deg", measured, truth, sigma, rounded=True)
+    hold = np.arange(ramp.size, truth.size)
+    rms = float(np.sqrt(np.mean(check.normalized[hold] ** 2)))
+    assert rms > 1.5  # beyond the white rounding level the floor had before
+    assert phase_floor_scale(check, hold) >= rms
