@@ -294,8 +294,8 @@ def phase_floor_scale(check: StageCheck, idx: np.ndarray) -> float:
     if idx.size < PHASE_SCALE_MIN_SAMPLES:
         return 0.0
     level = white_level(check, idx)
-    if check.rounding > 0:
-        # Where a channel on a grid holds one value, its rounding error is one offset of
+    if check.rounded and check.rounding > 0:
+        # Where a channel on a coarse grid holds one value, its rounding error is one offset of
         # up to half a step for the whole hold, not white noise of q/sqrt(12) (the holds
         # of a clean 12-bit angle in saturation scored 1.37x).
         m = check.measured
