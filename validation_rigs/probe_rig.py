@@ -62,6 +62,7 @@ from validation_rigs.uncatalogued_rig import (
     gap_m,
     lag_foh,
     plan_profile,
+    rescale,
     run_motor,
     visibility,
     write_case,
@@ -315,25 +316,18 @@ def make_case(
     ex = draw_extras(family, form, r_eff)
     size = _SIZE[(family, form)]
     lo, hi = size["open" if prof == "steps" else "closed"]
-    s = s0 = float(np.exp(r_eff.uniform(np.log(lo), np.log(hi))))
-    hist = []
-    s_lo, s_hi = 0.0, math.inf
-    for _ in range(16):
+    s0 = float(np.exp(r_eff.uniform(np.log(lo), np.log(hi))))
+
+    def attempt(s):
         prm = effect_params(family, form, s, ex)
         mot = mot0
         if family in _MOTOR:
             mot = run_motor(p, dt, n, theta0, fx=ProbeMotorEffect(family, form, prm, p), **kw)
-        rec, term, tin, tname = probe_chain(p, mot, dt, w_disc, family, form, prm)
-        vis, pf, pt = visibility(rec, rec0, sig, cur_on)
-        hist.append([s, vis, pf, pt])
-        if vis < 3.5:
-            s_lo = s
-            s = math.sqrt(s * s_hi) if s_hi < math.inf else s * min(4.5 / max(vis, 1e-9), 50)
-        elif max(pf, pt) >= 5.0:
-            s_hi = s
-            s = math.sqrt(s * s_lo) if s_lo > 0 else s * 4.0 / max(pf, pt)
-        else:
-            break
+        rec = probe_chain(p, mot, dt, w_disc, family, form, prm)
+        return (prm, mot, *rec), visibility(rec[0], rec0, sig, cur_on)
+
+    (prm, mot, rec, term, tin, tname), hist = rescale(attempt, s0, 16)
+    vis, pf, pt = hist[-1][1:]
     place = info["place"][form] if isinstance(info["place"], dict) else info["place"]
     truth: dict = {
         "family": family,

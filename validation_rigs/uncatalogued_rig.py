@@ -48,6 +48,7 @@ import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -836,6 +837,27 @@ def chain(p: dict, mot: dict, dt: float, w_disc: float, family: str | None = Non
     return rec, np.asarray(term, float), np.asarray(tin, float), name
 
 
+def rescale(attempt, s: float, tries: int) -> tuple[Any, list[list[float]]]:
+    """Bracket an effect's strength ``s`` until it is visible (>= 3.5x the noise on some
+    channel) and concealed (force and torque < 5 % off the twin), in at most ``tries``
+    simulations: ``attempt(s) -> (result, (visibility, force_pct, torque_pct))``.
+    Returns the last result and every try's ``[s, visibility, force_pct, torque_pct]``."""
+    hist: list[list[float]] = []
+    s_lo, s_hi = 0.0, math.inf  # bracket: invisible below, not concealed above
+    for _ in range(tries):
+        result, (vis, pf, pt) = attempt(s)
+        hist.append([s, vis, pf, pt])
+        if vis < 3.5:
+            s_lo = s
+            s = math.sqrt(s * s_hi) if s_hi < math.inf else s * min(4.5 / max(vis, 1e-9), 50)
+        elif max(pf, pt) >= 5.0:
+            s_hi = s
+            s = math.sqrt(s * s_lo) if s_lo > 0 else s * 4.0 / max(pf, pt)
+        else:
+            break
+    return result, hist
+
+
 def visibility(rec: dict, twin: dict, sig: dict, has_current: bool) -> tuple[float, float, float]:
     """Visibility and concealment of an effect.
 
@@ -1036,32 +1058,25 @@ def make_case(family: str, form: str, seed: int, index: int, *, nuisance: str | 
     if family == "clean":
         mot, rec, prm = mot0, rec0, {}
         term, tin, tname = np.zeros(n), np.zeros(n), "none"
-        vis, pf, pt, s0, s, hist = 0.0, 0.0, 0.0, 0.0, 0.0, []
+        vis, pf, pt, s0, hist = 0.0, 0.0, 0.0, 0.0, []
         truth.update(stage=None, place=None, depends_on=[], words="no planted effect")
     else:
         info = FAMILIES[family]
         ex = draw_extras(family, form, r_eff, p, mot0)
         size = _SIZE[(family, form)]
         lo, hi = size["open" if prof == "steps" else "closed"]
-        s = s0 = float(np.exp(r_eff.uniform(np.log(lo), np.log(hi))))
-        hist = []
-        s_lo, s_hi = 0.0, math.inf  # bracket: invisible below, not concealed above
-        for _ in range(12):
+        s0 = float(np.exp(r_eff.uniform(np.log(lo), np.log(hi))))
+
+        def attempt(s):
             prm = effect_params(family, form, s, ex, p)
             mot = mot0
             if family in _MOTOR_FAMILIES:
                 mot = run_motor(p, dt, n, theta0, fx=MotorEffect(family, form, prm, p), **kw)
-            rec, term, tin, tname = chain(p, mot, dt, w_disc, family, form, prm)
-            vis, pf, pt = visibility(rec, rec0, sig, cur_on)
-            hist.append([s, vis, pf, pt])
-            if vis < 3.5:
-                s_lo = s
-                s = math.sqrt(s * s_hi) if s_hi < math.inf else s * min(4.5 / max(vis, 1e-9), 50)
-            elif max(pf, pt) >= 5.0:
-                s_hi = s
-                s = math.sqrt(s * s_lo) if s_lo > 0 else s * 4.0 / max(pf, pt)
-            else:
-                break
+            rec = chain(p, mot, dt, w_disc, family, form, prm)
+            return (prm, mot, *rec), visibility(rec[0], rec0, sig, cur_on)
+
+        (prm, mot, rec, term, tin, tname), hist = rescale(attempt, s0, 12)
+        vis, pf, pt = hist[-1][1:]
         truth.update(stage=info["stage"], place=info["place"],
                      depends_on=list(info["depends_on"][form]), words=info["words"],
                      term_unit=_TERM_UNIT[info["place"]], strength_unit=size["unit"])
