@@ -793,8 +793,10 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     # term keeps about as much held-out gain as the best distilled one: a learned term
     # the library cannot express (its shape is in the learned basis but not the
     # library's) yields to one it can.
-    close = [r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain]
-    cands = [results[0], *close]
+    def close_to(pf):  # the other places whose learned term explains about as much
+        return [r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain]
+
+    cands = [results[0], *close_to(pf)]
     kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
     kept = cands[next(i for i, g in enumerate(kept_gain) if g >= PLACE_TIE * max(kept_gain))]
     if kept is not results[0]:
@@ -809,10 +811,9 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     # Other estimates of the stage's parameters: the distilled forms about as good on
     # held-out data, and the distilled term of every other place about as good (the
     # note "the trace cannot tell").
-    for r in results[1:]:
-        if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain:
-            _, _, _, fit_o, step_o, _, _ = distilled_at(r)
-            others.append(estimates(fit_o, step_o))
+    for r in close_to(pf):
+        _, _, _, fit_o, step_o, _, _ = distilled_at(r)
+        others.append(estimates(fit_o, step_o))
     spread = form_spread(best, others)
     return Discovery(
         stage,

@@ -259,10 +259,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
             + _and([f"{e} (ΔBIC {d:.0f})" for e, d in rivals])
             + ", explains less of it on held-out data."
         )
-    unrecorded = [
-        ch for ch in ("current_A", "x_m", "force_N", "torque_Nm") if not ses.trace.has(ch)
-    ]
-    modelled = [d for d in disc.depends_on if _source(d) in unrecorded]
+    modelled = [d for d in disc.depends_on if _source(d) and not ses.trace.has(_source(d))]
     if modelled:
         text += (
             f" It depends on the model's {_and(modelled)} (the trace records no "

@@ -18,7 +18,6 @@ from ewb_ident.data.stages import (
     STAGE,
     STAGE_COLUMNS,
     STAGE_OUTPUTS,
-    STAGES,
     TEACHER_FORCED,
 )
 from ewb_ident.data.trace import InputError, Trace
@@ -468,32 +467,27 @@ def model_channels(ses, fit) -> dict[str, np.ndarray]:
     v = dict(ses.values) | dict(fit.values)
     tr = ses.trace
     half = max(1, round(0.005 / tr.dt))
+    law = {  # each static stage's output from its input
+        "gap": lambda y: gap(y, v["p2"], v["p1"], v["p0"]),
+        "force": lambda y: clamp_force(y, v["F_rt"], v["a"], v["b"], v["c"]),
+        "torque": lambda y: brake_torque(y, v["mu"], tr.r_eff_m),
+    }
+    static = [STAGE[s] for s in TEACHER_FORCED if s in law]
     out: dict[str, np.ndarray] = {}
-
-    def given(ch):  # a stage's input: the model's where an earlier stage predicts it
-        return out[ch] if ch in out else leave_one_out(tr[ch], half)
-
+    if "motor" in fit.stages:
+        for ch in STAGE_OUTPUTS["motor"]:
+            if ch in fit.predictions[0]:
+                out[ch] = np.asarray(fit.predictions[0][ch], float)
     # A teacher-forced stage's prediction carries its measured input's noise, which is
-    # in the residual too: the stage is evaluated at the input's leave-one-out average.
-    for st in sorted(fit.stages, key=STAGES.index):
-        if st == "motor":
-            for ch in STAGE_OUTPUTS[st]:
-                if ch in fit.predictions[0]:
-                    out[ch] = np.asarray(fit.predictions[0][ch], float)
-        elif st == "gap":
-            out["x_m"] = np.asarray(gap(given("theta_deg"), v["p2"], v["p1"], v["p0"]))
-        elif st == "force":
-            out["force_N"] = np.asarray(
-                clamp_force(given("x_m"), v["F_rt"], v["a"], v["b"], v["c"])
-            )
-        elif st == "torque":
-            out["torque_Nm"] = np.asarray(brake_torque(given("force_N"), v["mu"], tr.r_eff_m))
-    if "theta_deg" in out and "x_m" not in out:
-        out["x_m"] = np.asarray(gap(out["theta_deg"], v["p2"], v["p1"], v["p0"]))
-    if "x_m" in out and "force_N" not in out:
-        out["force_N"] = np.asarray(clamp_force(out["x_m"], v["F_rt"], v["a"], v["b"], v["c"]))
-    if "force_N" in out and "torque_Nm" not in out:
-        out["torque_Nm"] = np.asarray(brake_torque(out["force_N"], v["mu"], ses.trace.r_eff_m))
+    # in the residual too: the stage is evaluated at the input's leave-one-out average,
+    # or at the model's where an earlier stage of the fit predicts it.
+    for st in static:
+        if st.name in fit.stages:
+            y = out[st.input] if st.input in out else leave_one_out(tr[st.input], half)
+            out[st.outputs[0]] = np.asarray(law[st.name](y))
+    for st in static:  # and what follows along the chain from the model's channels
+        if st.input in out and st.outputs[0] not in out:
+            out[st.outputs[0]] = np.asarray(law[st.name](out[st.input]))
     mot = ses.base_fits.get("motor")
     if not tr.has("current_A") and "current_A" not in out:
         if mot is not None and "current_A" in mot.predictions[0]:
