@@ -19,7 +19,7 @@ import pytest
 from ewb_ident import rig
 from ewb_ident.data.outputs import json_text
 from ewb_ident.diagnosis import discovery as disc_mod
-from ewb_ident.diagnosis import heldout, inputs
+from ewb_ident.diagnosis import heldout, inputs, places
 from ewb_ident.diagnosis.diagnose import diagnose
 
 SETTINGS = dict(seed=5, sample_rate_hz=200.0, duration_s=3.0, profile="position")
@@ -439,12 +439,12 @@ def test_the_motor_response_of_an_armature_far_faster_than_the_sample_is_finite(
     values = {"R": 1.0, "L": 2e-3, "kb": 0.09, "kT": 0.1, "M": 2e-5, "v": 0.002}
     A, B_V, _ = motor_matrices(*values.values())
     F, g = (np.asarray(z, float) for z in zoh_map(A, B_V, 1e-3))
-    h = disc_mod.motor_response(values, 1e-3, 200)
+    h = places.motor_response(values, 1e-3, 200)
     # Sample 2's response to a unit voltage over sample 0 is F g (current, angle in deg).
     np.testing.assert_allclose(h[2, 0, 0], (F @ g)[0], rtol=1e-10)
     np.testing.assert_allclose(h[2, 1, 0], (F @ g)[2] * 180 / np.pi, rtol=1e-10)
-    fast = disc_mod.motor_response(values | {"L": 3e-7}, 1e-3, 200)
-    faster = disc_mod.motor_response(values | {"L": 3e-9}, 1e-3, 200)
+    fast = places.motor_response(values | {"L": 3e-7}, 1e-3, 200)
+    faster = places.motor_response(values | {"L": 3e-9}, 1e-3, 200)
     assert np.all(np.isfinite(fast))
     np.testing.assert_allclose(fast[1:], faster[1:], rtol=1e-2, atol=1e-3 * np.abs(faster).max())
 
@@ -544,3 +544,32 @@ def test_a_sensor_term_takes_no_input_computed_from_the_channel_it_explains():
     _, run, _ = _clean()
     damper = 2 * mu * trace.r_eff_m * DAMPING_NS_PER_M * np.gradient(run.states["x_m"], trace.dt)
     assert np.std(recorded - model["torque_Nm"]) > 0.5 * np.std(damper)
+
+
+CROSSTALK_NM_PER_A = 15.0  # a torque reading that picks up the motor current
+
+
+def test_a_sensor_picking_up_a_fast_signal_takes_it_at_its_own_sample():
+    """At 100 Hz the motor current's transients after each voltage step are shorter than
+    a sample. A torque reading that picks up the current, ``T + k i``, is explained by
+    the current at the same sample: a recorded channel whose noise is not in the
+    torque's residual enters as recorded, not as its neighbours' average (which misses
+    the transient and gave ``k tanh(i / i0)``, two thirds of the gain)."""
+    noise = rig.SensorNoise()
+    settings = SETTINGS | dict(sample_rate_hz=100.0, seed=9, profile="steps")
+    trace, _, run = rig.simulate_rig(rig.RigParams(), noise=noise, return_clean=True, **settings)
+    truth = CROSSTALK_NM_PER_A * run.states["current_A"]
+    rng = np.random.default_rng(23)
+    ch = dict(trace.channels)
+    ch["torque_Nm"] = (
+        run.states["torque_Nm"] + truth + noise.sigma("torque_Nm") * rng.standard_normal(trace.n)
+    )
+    res = diagnose(dataclasses.replace(trace, channels=ch, name="crosstalk"))
+    (top,) = res.findings
+    assert top.place in ("sensor.torque_Nm", "torque.output")
+    assert top.depends_on == ("current",)
+    (term,) = top.terms
+    assert term["expression"] == "i"
+    assert term["coef"] == pytest.approx(CROSSTALK_NM_PER_A, rel=0.05)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.1 * np.sqrt(np.mean(truth**2))
+    assert top.heldout["excess_share"] >= 0.8

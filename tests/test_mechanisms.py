@@ -342,7 +342,7 @@ def test_a_learned_motor_term_enters_the_integration_exactly():
     """A learned voltage or load torque per sample (zero-order hold) enters the motor's
     linear flow exactly: the change it makes is the discovery's linear response (the
     motor's impulse response convolved with the series), to round-off."""
-    from ewb_ident.diagnosis.discovery import motor_response
+    from ewb_ident.diagnosis.places import motor_response
     from ewb_ident.mechanisms.learned import LearnedTerm
 
     n, dt = 400, 0.005

@@ -44,12 +44,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
-from ewb_ident.diagnosis.filters import fft_convolve_columns
+from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.heldout import (
     HELDOUT_BIC,
     RIDGES,
@@ -73,11 +71,16 @@ from ewb_ident.diagnosis.inputs import (
     sensor_signal,
     stacked,
 )
+from ewb_ident.diagnosis.places import (
+    own_sample_channels,
+    place_effect,
+    place_stages,
+    places_of,
+)
 from ewb_ident.diagnosis.session import model_channels
-from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
-from ewb_ident.model.integrate import motor_fine, zoh_exact
+from ewb_ident.mechanisms.learned import PLACES
+from ewb_ident.model.integrate import motor_fine
 from ewb_ident.model.params import PARAMS, EWBParams
-from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 #: ... a learned term must also remove at least this share of the held-out excess over
 #: the noise (beside a held-out score of at most ``-HELDOUT_BIC``).
@@ -102,106 +105,6 @@ PLACE_TIE = 0.95
 #: A catalog mechanism yields to a learned term at its stage when the learned term
 #: removes this much more of the excess on held-out data.
 CATALOG_MARGIN = 0.05
-
-
-# ----------------------------------------------------------------------------- places
-
-
-def motor_response(values: Mapping[str, float], dt: float, n: int) -> np.ndarray:
-    """Impulse responses of the motor (current A, angle deg) to a voltage (column 0) and
-    to a load torque (column 1) held over one sample: ``h[k, out, inp]`` is the output
-    at sample ``k`` after a unit input over sample 0 (the outputs lag by one sample)."""
-    A, B_V, B_tau = motor_matrices(*(float(values[k]) for k in "R L kb kT M v".split()), np)
-    Ad, Bd = zoh_exact(A, np.stack([B_V, B_tau], axis=1), dt)
-    h = np.zeros((n, 2, 2))
-    x = Bd.copy()
-    for k in range(1, n):
-        h[k, 0], h[k, 1] = x[0], x[2] * DEG_PER_RAD
-        x = Ad @ x
-        if k > 50 and np.max(np.abs(x[:2])) < 1e-14 * (1 + np.max(np.abs(h[k]))):
-            h[k + 1 :, 1] = h[k, 1]  # the speed has died out: the angle stays
-            break
-    return h
-
-
-def _bell_slope(x, values) -> np.ndarray:
-    F_rt, a, b, c = (float(values[k]) for k in ("F_rt", "a", "b", "c"))
-    u = np.abs((x - c) / a) + 1e-300
-    q = u ** (2 * b)
-    return F_rt * (2 * b * q / u) * np.sign(c - x) / a / (1 + q) ** 2
-
-
-def place_effect(place: str, values: Mapping[str, float], trace) -> dict[str, Any]:
-    """How a term at ``place`` changes each predicted channel, per stage.
-
-    Returns ``{channel: op}`` where ``op(U)`` maps the term's basis columns ``U`` (n, K)
-    to the change of that channel's prediction (n, K): the model's exact linear response
-    at the current fit (``values``)."""
-    n, dt = trace.n, trace.dt
-    ch_sensor = place.split(".", 1)[1] if place.startswith("sensor.") else None
-    if place in ("motor.electrical", "motor.mechanical"):
-        h = motor_response(values, dt, n)
-        j = 0 if place == "motor.electrical" else 1
-
-        def conv(k_out):
-            def op(U):
-                return fft_convolve_columns(h[:, k_out, j], U)[:n]  # scipy.signal.fftconvolve
-
-            return op
-
-        return {"current_A": conv(0), "theta_deg": conv(1)}
-
-    def scaled(g):
-        g = np.asarray(g, float)[:n]
-        return lambda U: g[:, None] * U
-
-    th = trace["theta_deg"] if trace.has("theta_deg") else None
-    x = trace["x_m"] if trace.has("x_m") else None
-    F = trace["force_N"] if trace.has("force_N") else None
-    slope_th = None if th is None else 2 * values["p2"] * th + values["p1"]
-    slope_x = None if x is None else _bell_slope(x, values)
-    gain_F = 2 * values["mu"] * trace.r_eff_m
-    one = lambda U: U  # noqa: E731
-    if place == "drive":
-        return {"x_m": one}
-    if place == "gap":
-        return {"x_m": scaled(slope_th)} if slope_th is not None else {}
-    if place == "force.input":
-        return {"force_N": scaled(slope_x)} if slope_x is not None else {}
-    if place == "force.output":
-        return {"force_N": one}
-    if place == "friction":
-        return {"torque_Nm": scaled(gain_F * F)} if F is not None else {}
-    if place == "torque.output":
-        return {"torque_Nm": one}
-    if ch_sensor is not None:
-        out = {ch_sensor: one}
-        down = CHANNEL_INPUT_OF.get(ch_sensor)
-        slope = {"gap": slope_th, "force": slope_x, "torque": np.full(n, gain_F)}.get(down)
-        if down is not None and slope is not None:
-            down_ch = STAGE_OUTPUTS[down][0]
-            out[down_ch] = scaled(-slope)
-        return out
-    raise ValueError(f"unknown place {place!r}")
-
-
-def places_of(stage: str, channels: Sequence[str]) -> list[str]:
-    """The places whose term shows at ``stage`` (its own, and the sensors of its
-    recorded output and input channels)."""
-    own = [p for p, info in PLACES.items() if info.stage == stage and not p.startswith("sensor.")]
-    sensors = []
-    for ch in channels:
-        if ch == "voltage_V":
-            continue
-        if CHANNEL_STAGE.get(ch) == stage or CHANNEL_INPUT_OF.get(ch) == stage:
-            sensors.append(f"sensor.{ch}")
-    return own + sensors
-
-
-def place_stages(place: str, stages: Sequence[str]) -> tuple[str, ...]:
-    """The teacher-forced stages (of those checkable) whose residuals a term at ``place``
-    changes."""
-    return tuple(s for s in LearnedTerm(place=place).stages if s in stages)
 
 
 # ----------------------------------------------------------------------------- search
@@ -324,6 +227,9 @@ class Discovery(TermColumns):
     #: Other expressions of the distillation (:func:`distil`), each ``(terms, coef,
     #: distilled, start)``, for when this one does not improve the fit through the model.
     fallbacks: tuple = field(default=(), repr=False)
+    #: The recorded channels whose levels its inputs took at their own sample
+    #: (:func:`own_sample_channels`).
+    raw: tuple[str, ...] = ()
 
     def alternatives(self) -> list[Discovery]:
         """This discovery with each of its fallback expressions in place of its own."""
@@ -744,28 +650,33 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         fit = fits_of(stages)
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
         model = model_channels(ses, fit)
-        sig = input_signals(trace, model, fine)
+        raw = own_sample_channels(trace, model, stages)
+        sig = input_signals(trace, model, fine, raw)
         sig = {k: v for k, v in sig.items() if k not in NOT_INPUTS.get(place, ())}
         groups = learned_groups(sig, carriers_of(place), angle_periods(ses, fit, place, sig))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue
         pf = learn_place(d, groups, place)
-        results.append((pf, d, groups, sig, stages, tuple(model)))
+        results.append((pf, d, groups, sig, stages, (tuple(model), raw)))
     if not results:
         return None
     # The place whose term removes the most held-out residual (in units of the noise:
     # a sensor's term is judged on both stages it shows in).
     results.sort(key=lambda x: -x[0].rank_gain)
     best_gain = results[0][0].rank_gain
-    close = [x for x in results if x[0].groups and x[0].rank_gain >= PLACE_TIE * best_gain]
+    close = keep_generalising(
+        [x for x in results if x[0].groups and x[0].rank_gain >= PLACE_TIE * best_gain]
+    )
     if close:
         results.remove(min(close, key=lambda x: _specificity(x[0].place)))
         results.insert(0, min(close, key=lambda x: _specificity(x[0].place)))
-    pf, d, groups, sig, stages, model = results[0]
+    pf, d, groups, sig, stages, (model, raw) = results[0]
     if not pf.groups:
         places = tuple(r[0] for r in results)
-        return Discovery(stage, pf.place, stages, pf, pf, (), (), method, places, sig, model)
+        return Discovery(
+            stage, pf.place, stages, pf, pf, (), (), method, places, sig, model, raw=raw
+        )
 
     def distilled(pf, sig, stages, knots=(0.5,)):
         items = library(sig, pf.groups, knots)
@@ -796,13 +707,13 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     def close_to(pf):  # the other places whose learned term explains about as much
         return [r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain]
 
-    cands = [results[0], *close_to(pf)]
+    cands = keep_generalising([results[0], *close_to(pf)])
     kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
     kept = cands[next(i for i, g in enumerate(kept_gain) if g >= PLACE_TIE * max(kept_gain))]
     if kept is not results[0]:
         results.remove(kept)
         results.insert(0, kept)
-        pf, d, groups, sig, stages, model = kept
+        pf, d, groups, sig, stages, (model, raw) = kept
     dfit, chosen, x, fit, step, others, (dl, items) = distilled_at(kept)
     others = list(others)
     fallbacks = fallback_expressions(dl, items, pf, dfit, fit)
@@ -830,7 +741,16 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         spread,
         linearised_start(fit, step),
         tuple(fallbacks),
+        raw,
     )
+
+
+def keep_generalising(cands: list) -> list:
+    """Of places that explain the mismatch about as well, those whose term generalises
+    (:attr:`PlaceFit.why_not`), if any does: a term that fails the held-out folds at
+    one place does not hide one that passes them at another."""
+    good = [r for r in cands if r[0].generalises]
+    return good or cands
 
 
 #: Places whose held-out gain is at least this share of the best's explain the

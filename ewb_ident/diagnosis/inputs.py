@@ -7,7 +7,7 @@ and the physical form of each term (:func:`physical`). Used by
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -78,7 +78,10 @@ def leave_one_out(y: np.ndarray, half: int) -> np.ndarray:
 
 
 def input_signals(
-    trace, model: Mapping[str, np.ndarray], fine: Mapping[str, np.ndarray] | None = None
+    trace,
+    model: Mapping[str, np.ndarray],
+    fine: Mapping[str, np.ndarray] | None = None,
+    raw: Collection[str] = (),
 ) -> dict[str, Signal]:
     """Every signal a learned term may depend on, from the trace and the model.
 
@@ -100,6 +103,9 @@ def input_signals(
         The motor's states within each sample interval (:func:`motor_fine`): a term
         inside the motor's integration depends on them there, so they replace the
         current, speed and angle (and the heat is integrated from them).
+    raw
+        Recorded channels whose noise is not in the residual the term explains: their
+        level enters at its own sample (a fast transient), not as its neighbours' mean.
     """
     dt, n = trace.dt, trace.n
     half = max(1, round(0.005 / dt))
@@ -118,11 +124,11 @@ def input_signals(
             ref = max(ref, float(np.max(np.abs(within))))
         out[name] = Signal(name, v, unit, kind, words, symbol, ref, within)
 
-    def channel(ch):
+    def channel(ch, own_sample=False):  # (the level of a channel in ``raw``: as recorded)
         if ch in model:
             return np.asarray(model[ch], float)[:n]
         if trace.has(ch):
-            return leave_one_out(trace[ch], half)
+            return trace[ch] if own_sample and ch in raw else leave_one_out(trace[ch], half)
         return None
 
     t = trace.time_s - trace.time_s[0]
@@ -131,16 +137,18 @@ def input_signals(
         V = trace["voltage_V"]
         add("voltage", V, "V", "signed", "the motor voltage", "V")
         add("voltage_rate", np.gradient(V, dt), "V/s", "signed", "the voltage's rate", "dV/dt")
+
     th = channel("theta_deg")
     if th is not None:
         omega = np.gradient(th, dt) / DEG_PER_RAD
-        add("angle", th, "deg", "angle", "the pinion angle", "θ")
+        add("angle", channel("theta_deg", True), "deg", "angle", "the pinion angle", "θ")
         add("speed", omega, "rad/s", "signed", "the motor speed", "ω")
     cur = channel("current_A")
     if fine is not None and "current" in fine:
         cur = np.asarray(fine["current"])[:, 0]
     if cur is not None:
-        add("current", cur, "A", "signed", "the motor current", "i")
+        level = channel("current_A", True) if fine is None else cur
+        add("current", level, "A", "signed", "the motor current", "i")
         if fine is not None and "current" in fine:
             per = interval_mean(np.asarray(fine["current"]) ** 2)
             heat = np.concatenate([[0.0], np.cumsum(per[:-1])]) * dt
@@ -163,7 +171,7 @@ def input_signals(
         y = channel(ch)
         if y is None:
             continue
-        add(name, y, unit, "level", words, sym)
+        add(name, channel(ch, True), unit, "level", words, sym)
         rate = np.gradient(y, dt)
         add(f"{name}_rate", rate, f"{unit}/s", "signed", rate_words, f"d{sym}/dt")
         if name != "force":

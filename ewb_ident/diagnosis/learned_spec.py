@@ -45,9 +45,10 @@ class LearnedSpec(TermColumns):
     place's unit per normalised column).
 
     On a trace, the inputs are rebuilt as the diagnosis built them: recorded channels
-    through their leave-one-out average, the channels in ``model`` (and those the trace
-    does not record) from the seed chain simulated from the voltage at the model's
-    parameters, and the motor's states within each sample for a term in the motor.
+    through their leave-one-out average (the levels of those in ``raw`` as recorded),
+    the channels in ``model`` (and those the trace does not record) from the seed chain
+    simulated from the voltage at the model's parameters, and the motor's states within
+    each sample for a term in the motor.
     """
 
     place: str
@@ -58,13 +59,16 @@ class LearnedSpec(TermColumns):
     #: Per base parameter (SI), how far its estimate moves between the forms and places
     #: of the term the diagnosed trace could not tell apart (:func:`form_spread`).
     spread: dict[str, float] = field(default_factory=dict)
+    #: Recorded channels whose levels enter at their own sample (not their neighbours'
+    #: average, :func:`~ewb_ident.diagnosis.inputs.input_signals`).
+    raw: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, disc: Discovery, coef: Sequence[float]) -> LearnedSpec:
         refs = {n: disc.signals[n].ref for c in disc.columns for n in inputs_of(c)}
         terms = tuple(tuple(Column(c.label, c.signal, None, c.form) for c in t) for t in disc.terms)
         coef = tuple(float(c) for c in coef)
-        return cls(disc.place, terms, refs, disc.model, coef, dict(disc.spread))
+        return cls(disc.place, terms, refs, disc.model, coef, dict(disc.spread), disc.raw)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -77,6 +81,7 @@ class LearnedSpec(TermColumns):
             "model_channels": list(self.model),
             "coef": list(self.coef),
             "spread": dict(self.spread),
+            "raw_channels": list(self.raw),
         }
 
     @classmethod
@@ -100,6 +105,7 @@ class LearnedSpec(TermColumns):
                 tuple(str(c) for c in doc["model_channels"]),
                 tuple(float(c) for c in doc["coef"]),
                 {str(k): float(v) for k, v in (doc.get("spread") or {}).items()},
+                tuple(str(c) for c in doc.get("raw_channels", ())),
             )
             for c in spec.columns:
                 if c.form[0] != "one":
@@ -149,7 +155,7 @@ class LearnedSpec(TermColumns):
         return self._signals(trace, model, fine)
 
     def _signals(self, trace, model, fine) -> dict[str, Signal]:
-        sig = input_signals(trace, model, fine)
+        sig = input_signals(trace, model, fine, self.raw)
         missing = [n for n in self.refs if n not in sig]
         if missing:
             raise TermError(
