@@ -568,11 +568,14 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
         disc = discover(ses, s, fits_of(ses, work.selected))
         if disc is None:
             continue
-        if not disc.learned.groups or not disc.distilled.generalises:
+        # The distilled term, else the other expressions and places about as good.
+        tried = [d for d in (disc, *disc.alternatives()) if d.learned.groups]
+        tried = [d for d in tried if d.distilled.generalises]
+        if not tried:
             work.notes.append(not_generalised(disc))
             continue
-        res = fit_learned(ses, disc, work.selected, bic_threshold)
-        for alt in disc.alternatives() if res is None else ():
+        res = None
+        for alt in tried:
             res = fit_learned(ses, alt, work.selected, bic_threshold)
             if res is not None:
                 disc = alt
@@ -641,9 +644,15 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     kept: list[AbstractMechanism] = []
     last: dict[str, tuple[AbstractMechanism, dict[str, float]]] = {}
 
-    def confirmed(m: AbstractMechanism) -> bool:
+    def confirmed(m: AbstractMechanism, fitted: FitResult | None = None) -> bool:
         prev = chain.fits[-1]
         mechs = [mechanism_start(x, prev) for x in [*kept, m]]
+        # ... and from the teacher-forced fits with the mechanisms (with a learned term:
+        # its stages' fit with it, ``fitted``, and its coefficients from zero too, where
+        # the chain has bent other parameters to take up what it explains)
+        alt = [{n: ses.values[n] for n in chain.free if n in ses.values}]
+        if fitted is not None:
+            alt.append({n: fitted.values[n] for n in chain.free if n in fitted.values})
         f = fit_mechanisms(
             chain.data,
             ("chain",),
@@ -651,9 +660,8 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
             mechs,
             tuple(chain.sigma),
             start={n: prev.values[n] for n in chain.free},
-            explore=[False] * len(mechs),
-            # ... and from the teacher-forced fits with the mechanisms
-            alt_starts=[{n: ses.values[n] for n in chain.free if n in ses.values}],
+            explore=[False] * len(kept) + [fitted is not None],
+            alt_starts=alt,
         )
         ev = bic_evidence(f, prev, chain.sigma)
         if ev["delta_bic"] > -bic_threshold:
@@ -674,8 +682,19 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     if learned:
         # The learned terms' basis series, for the chain's model.
         chain.data = learned_data(chain.data, [d for d, _, _, _ in work.discoveries])
-    for m in learned:
-        confirmed(m)
+    for k, (disc, f_stage, _, term) in enumerate(list(work.discoveries)):
+        if confirmed(term, f_stage):
+            continue
+        # Not confirmed by the chain: the other places about as good, then the other
+        # expressions (a voltage that stands in for the speed on the motor stage alone).
+        for alt in disc.alternatives(places_first=True):
+            res = fit_learned(ses, alt, work.selected, bic_threshold)
+            if res is None:
+                continue
+            chain.data = learned_data(chain.data, [alt])
+            if confirmed(res[2], res[0]):
+                work.discoveries[k] = (alt, *res)
+                break
     return kept, chain_ev, list(last.values())
 
 

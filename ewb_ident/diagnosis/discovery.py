@@ -230,13 +230,20 @@ class Discovery(TermColumns):
     #: The recorded channels whose levels its inputs took at their own sample
     #: (:func:`own_sample_channels`).
     raw: tuple[str, ...] = ()
+    #: The distilled terms of the other places about as good (:attr:`close_places`)
+    #: whose expression generalises, for when this one's fit through the model fails.
+    elsewhere: tuple = field(default=(), repr=False)
 
-    def alternatives(self) -> list[Discovery]:
-        """This discovery with each of its fallback expressions in place of its own."""
-        return [
-            replace(self, terms=t, coef=c, distilled=f, start=st, fallbacks=())
+    def alternatives(self, places_first: bool = False) -> list[Discovery]:
+        """This discovery with each of its fallback expressions in place of its own, and
+        the distilled terms of the other places that explain the mismatch about as well
+        (:attr:`elsewhere`; first with ``places_first``: when the place is in doubt, not
+        the expression)."""
+        same = [
+            replace(self, terms=t, coef=c, distilled=f, start=st, fallbacks=(), elsewhere=())
             for t, c, f, st in self.fallbacks
         ]
+        return [*self.elsewhere, *same] if places_first else [*same, *self.elsewhere]
 
     @property
     def close_places(self) -> tuple[PlaceFit, ...]:
@@ -718,31 +725,27 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     others = list(others)
     fallbacks = fallback_expressions(dl, items, pf, dfit, fit)
     best = estimates(fit, step, free_only=False)
-    coef = tuple(float(c) for c in x)
     # Other estimates of the stage's parameters: the distilled forms about as good on
     # held-out data, and the distilled term of every other place about as good (the
     # note "the trace cannot tell").
+    elsewhere = []
     for r in close_to(pf):
-        _, _, _, fit_o, step_o, _, _ = distilled_at(r)
+        dfit_o, chosen_o, x_o, fit_o, step_o, _, _ = distilled_at(r)
         others.append(estimates(fit_o, step_o))
+        if chosen_o and dfit_o.generalises:  # (kept for a fit through the model that fails)
+            elsewhere.append((r, dfit_o, chosen_o, x_o, fit_o, step_o))
     spread = form_spread(best, others)
-    return Discovery(
-        stage,
-        pf.place,
-        stages,
-        pf,
-        dfit,
-        tuple(tuple(t) for t in chosen),
-        coef,
-        method,
-        tuple(r[0] for r in results),
-        sig,
-        model,
-        spread,
-        linearised_start(fit, step),
-        tuple(fallbacks),
-        raw,
-    )
+    places = tuple(r[0] for r in results)
+
+    def found_at(r, dfit, chosen, x, fit, step, fallbacks=()) -> Discovery:
+        pf, _, _, sig, stages, (model, raw) = r
+        terms = tuple(tuple(t) for t in chosen)
+        coef, start = tuple(float(c) for c in x), linearised_start(fit, step)
+        return Discovery(stage, pf.place, stages, pf, dfit, terms, coef, method, places, sig,
+                         model, spread, start, tuple(fallbacks), raw)  # fmt: skip
+
+    main = found_at(kept, dfit, chosen, x, fit, step, fallbacks)
+    return replace(main, elsewhere=tuple(found_at(*e) for e in elsewhere))
 
 
 def keep_generalising(cands: list) -> list:
