@@ -184,11 +184,14 @@ def test_the_distilled_equation_has_the_planted_form():
     assert term["coef"] == pytest.approx(truth, rel=0.05)
     assert "pad pressure" in top.explanation  # the reading of a known signature
     # One apply: the torque rises with the force, so the trace cannot tell them apart,
-    # and the finding says so (the damper's piston speed has no such twin).
-    assert top.equivalents == ("torque",)
-    assert "or on the brake torque, which moves with it here" in top.explanation
+    # and the finding says so; a torque added at the output as a function of the piston
+    # (monotone in the force along the apply) explains it about as well, and the
+    # finding names it with its input (the damper's piston speed has no such twin).
+    assert top.equivalents[0] == "torque" and "x" in top.equivalents
+    assert "or on the brake torque, the piston displacement" in top.explanation
+    assert "torque.output (on the piston displacement)" in top.explanation
     doc = json.loads(json_text(res.to_json()))
-    assert doc["findings"][0]["depends_on_equivalent"] == ["torque"]
+    assert doc["findings"][0]["depends_on_equivalent"] == list(top.equivalents)
     assert damped_diagnosis().findings[0].equivalents == ()
 
 

@@ -179,6 +179,12 @@ class PlaceFit:
         return ""
 
 
+def group_signals(groups: Sequence[str]) -> list[str]:
+    """The signals of input groups (``"current*heat"``, ``"angle@60"``: current, heat,
+    angle)."""
+    return [n for g in groups for n in g.partition("@")[0].split("*") if n != "constant"]
+
+
 def inputs_of(col: Column) -> tuple[str, ...]:
     """The signals a basis column depends on."""
     if col.form[0] == "one":
@@ -256,14 +262,11 @@ class Discovery(TermColumns):
     @property
     def equivalents(self) -> tuple[str, ...]:
         """Signals the trace cannot tell from those the term depends on: put in place of
-        one of its inputs, they fit held-out data about as well (they move together in
-        this trace)."""
-        out: list[str] = []
-        for g in self.learned.ties:
-            for name in g.partition("@")[0].split("*"):
-                if name not in ("constant", *self.depends_on, *out):
-                    out.append(name)
-        return tuple(out)
+        one of its inputs, or as the inputs of a term at a place about as good
+        (:attr:`close_places`), they fit held-out data about as well (they move together
+        in this trace)."""
+        groups = (*self.learned.ties, *(g for p in self.close_places for g in p.groups))
+        return tuple(dict.fromkeys(n for n in group_signals(groups) if n not in self.depends_on))
 
     def equation(self, coef: Sequence[float] | None = None) -> str:
         """The distilled term in SI units, ``quantity = expression [unit]``."""

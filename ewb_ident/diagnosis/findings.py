@@ -12,6 +12,7 @@ from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.discovery import (
     Discovery,
     basis_matrix,
+    group_signals,
 )
 from ewb_ident.diagnosis.inputs import OWN_SIGNAL, physical
 from ewb_ident.diagnosis.learned_spec import LearnedSpec, learned_term
@@ -199,6 +200,10 @@ def learned_data(data: dict[str, Any], discoveries) -> dict[str, Any]:
     return with_bases(data, {d.place: basis_matrix(d) for d in discoveries})
 
 
+def _words(disc: Discovery, name: str) -> str:
+    return disc.signals[name].words if name in disc.signals else name
+
+
 def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, after,
                     rivals=()) -> Finding:  # fmt: skip
     """A finding for a discovered term: where it acts, its equation with intervals, what
@@ -210,8 +215,8 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     info = PLACES[disc.place]
     phases = _phases_of(stage, flagged, disc.stages)
     where = f"{stage} stage" + (f", {_and(phases)}" if phases else "")
-    deps = [disc.signals[d].words if d in disc.signals else d for d in disc.depends_on]
-    same = [disc.signals[d].words if d in disc.signals else d for d in disc.equivalents]
+    deps = [_words(disc, d) for d in disc.depends_on]
+    same = [_words(disc, d) for d in disc.equivalents]
     moves = "which moves" if len(same) == 1 else "which move"
     ch = MAIN_CHANNEL[stage]
     mw = _metric_words(ch, before, after)
@@ -266,9 +271,13 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
             f"{_and(sorted({_source(d) for d in modelled}))}): its shape is only as good as "
             "the model's."
         )
-    close = [p.place for p in disc.close_places]
+    close = [
+        f"{p.place} (on {_and([_words(disc, n) for n in dict.fromkeys(group_signals(p.groups))])})"
+        for p in disc.close_places
+    ]
     if close:
-        text += f" A term at {_and(close)} explains it about as well: the trace cannot tell."
+        who = ("Terms at", "explain") if len(close) > 1 else ("A term at", "explains")
+        text += f" {who[0]} {_and(close)} {who[1]} it about as well: the trace cannot tell."
     heldout = {
         "improvement_pct": ho.improvement_pct,
         "method": disc.method,
