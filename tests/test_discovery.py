@@ -589,7 +589,8 @@ def test_a_sensor_picking_up_a_fast_signal_takes_it_at_its_own_sample():
     ch["torque_Nm"] = (
         run.states["torque_Nm"] + truth + noise.sigma("torque_Nm") * rng.standard_normal(trace.n)
     )
-    res = diagnose(dataclasses.replace(trace, channels=ch, name="crosstalk"))
+    trace = dataclasses.replace(trace, channels=ch, name="crosstalk")
+    res = diagnose(trace)
     (top,) = res.findings
     assert top.place in ("sensor.torque_Nm", "torque.output")
     assert top.depends_on == ("current",)
@@ -598,3 +599,14 @@ def test_a_sensor_picking_up_a_fast_signal_takes_it_at_its_own_sample():
     assert term["coef"] == pytest.approx(CROSSTALK_NM_PER_A, rel=0.05)
     assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.1 * np.sqrt(np.mean(truth**2))
     assert top.heldout["excess_share"] >= 0.8
+    # The basis says which inputs were taken at their own sample, and the corrected
+    # model rebuilds them so: refitted, the coefficient is the planted one again.
+    from ewb_ident.diagnosis.corrected import fit_corrected
+    from ewb_ident.diagnosis.learned_spec import LearnedSpec
+
+    basis = json.loads(json_text(top.basis))
+    assert "current_A" in basis["raw_channels"]
+    cf = fit_corrected(trace, [], [LearnedSpec.from_json(basis, "crosstalk")])
+    m = re.fullmatch(r"Δtorque_Nm = \+?([0-9.e+-]+)·i \[N\*m\]", cf.learned[0]["equation"])
+    assert m, cf.learned[0]["equation"]
+    assert float(m.group(1)) == pytest.approx(CROSSTALK_NM_PER_A, rel=0.05)
