@@ -647,9 +647,9 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     def confirmed(m: AbstractMechanism, fitted: FitResult | None = None) -> bool:
         prev = chain.fits[-1]
         mechs = [mechanism_start(x, prev) for x in [*kept, m]]
-        # ... and from the teacher-forced fits with the mechanisms (with a learned term:
-        # its stages' fit with it, ``fitted``, and its coefficients from zero too, where
-        # the chain has bent other parameters to take up what it explains)
+        # ... and from the teacher-forced fits with the mechanisms (on a second try of a
+        # learned term: its stages' fit with it, ``fitted``, and its coefficients from
+        # zero too, where the chain has bent other parameters to take up what it explains)
         alt = [{n: ses.values[n] for n in chain.free if n in ses.values}]
         if fitted is not None:
             alt.append({n: fitted.values[n] for n in chain.free if n in fitted.values})
@@ -683,7 +683,7 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
         # The learned terms' basis series, for the chain's model.
         chain.data = learned_data(chain.data, [d for d, _, _, _ in work.discoveries])
     for k, (disc, f_stage, _, term) in enumerate(list(work.discoveries)):
-        if confirmed(term, f_stage):
+        if confirmed(term) or confirmed(term, f_stage):
             continue
         # Not confirmed by the chain: the other places about as good, then the other
         # expressions (a voltage that stands in for the speed on the motor stage alone).
