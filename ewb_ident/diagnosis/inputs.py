@@ -137,7 +137,6 @@ def input_signals(
         V = trace["voltage_V"]
         add("voltage", V, "V", "signed", "the motor voltage", "V")
         add("voltage_rate", np.gradient(V, dt), "V/s", "signed", "the voltage's rate", "dV/dt")
-
     th = channel("theta_deg")
     if th is not None:
         omega = np.gradient(th, dt) / DEG_PER_RAD

@@ -110,12 +110,12 @@ def places_of(stage: str, channels: Sequence[str]) -> list[str]:
 
 
 def own_sample_channels(trace, model, stages: Sequence[str]) -> tuple[str, ...]:
-    """The recorded channels whose noise is not in the residuals of ``stages``, neither
-    as their output nor through their input (nor taken from the model): a term there
-    may take them at their own sample."""
+    """The recorded channels whose noise is not in the residuals of ``stages`` (those a
+    term at the channel's sensor shows in: as an output or through an input), nor taken
+    from the model: a term there may take them at their own sample."""
     return tuple(
-        ch for ch in CHANNEL_STAGE if trace.has(ch) and ch not in model
-        and CHANNEL_STAGE[ch] not in stages and CHANNEL_INPUT_OF.get(ch) not in stages
+        ch for ch in CHANNEL_STAGE
+        if trace.has(ch) and ch not in model and not place_stages(f"sensor.{ch}", stages)
     )  # fmt: skip
 
 
