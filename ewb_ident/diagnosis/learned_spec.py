@@ -120,6 +120,12 @@ class LearnedSpec(TermColumns):
                 f"{where}: place {spec.place!r} or its {len(spec.coef)} coefficients do not "
                 f"match its {len(spec.columns)} columns; use the 'basis' diagnose wrote"
             )
+        unknown = [c for c in (*spec.model, *spec.raw) if c not in CHANNELS]
+        if unknown:
+            raise TermError(
+                f"{where}: 'model_channels' or 'raw_channels' names {', '.join(unknown)}, "
+                "which is no channel of the trace format; use the 'basis' diagnose wrote"
+            )
         numbers = [*spec.coef, *spec.refs.values(), *spec.spread.values()]
         if not all(np.isfinite(numbers)):
             raise TermError(f"{where}: a coefficient or size is not a finite number")
