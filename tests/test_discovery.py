@@ -364,24 +364,26 @@ def test_a_learned_term_that_cannot_be_rebuilt_is_refused_in_one_line(corrected,
     from ewb_ident.cli import app
 
     _, tmp = corrected
-    doc = json.loads((tmp / "diagnosis.json").read_text())
-    doc["findings"][0]["basis"]["terms"][0][0]["form"] = ["nonsense", 1]
-    (tmp_path / "diagnosis.json").write_text(json.dumps(doc))
-    out = CliRunner().invoke(
-        app, ["fit", str(tmp / "a.csv"), "--with-diagnosis", str(tmp_path),
-              "--out", str(tmp_path / "f")],
-    )  # fmt: skip
-    assert out.exit_code == 2 and "not a learned term's basis" in out.output
-    assert len(out.output.strip().splitlines()) == 1 and not (tmp_path / "f").exists()
-    doc = json.loads((tmp / "diagnosis.json").read_text())
-    doc["findings"][0]["basis"]["raw_channels"] = ["current_mA"]
-    (tmp_path / "diagnosis.json").write_text(json.dumps(doc))
-    out = CliRunner().invoke(
-        app, ["fit", str(tmp / "a.csv"), "--with-diagnosis", str(tmp_path),
-              "--out", str(tmp_path / "f")],
-    )  # fmt: skip
-    assert out.exit_code == 2 and "current_mA, which is no channel" in out.output
-    assert len(out.output.strip().splitlines()) == 1 and not (tmp_path / "f").exists()
+
+    def refused(edit) -> str:  # fit --with-diagnosis of the diagnosis with one edit
+        doc = json.loads((tmp / "diagnosis.json").read_text())
+        edit(doc["findings"][0]["basis"])
+        (tmp_path / "diagnosis.json").write_text(json.dumps(doc))
+        out = CliRunner().invoke(
+            app, ["fit", str(tmp / "a.csv"), "--with-diagnosis", str(tmp_path),
+                  "--out", str(tmp_path / "f")],
+        )  # fmt: skip
+        assert out.exit_code == 2, out.output
+        assert len(out.output.strip().splitlines()) == 1 and not (tmp_path / "f").exists()
+        return out.output
+
+    def nonsense_form(basis):
+        basis["terms"][0][0]["form"] = ["nonsense", 1]
+
+    assert "not a learned term's basis" in refused(nonsense_form)
+    assert "current_mA, which is no channel" in refused(
+        lambda basis: basis.update(raw_channels=["current_mA"])
+    )
     fit = json.loads((tmp / "f" / "fit.json").read_text())
     fit["learned"][0]["basis"]["refs"] = {"disc_angle": 6.28}
     fit["learned"][0]["basis"]["terms"] = [[{"label": "sin(φ_d)", "signal": "disc_angle",
