@@ -15,7 +15,7 @@ The sides.
 
 ``hand-written``
     What ``fit`` runs (``least_squares._solve``): Levenberg-Marquardt in NumPy around
-    the one compiled program of residuals and Jacobian (``problem.fit_program``; the
+    the one compiled program of residuals and Jacobian (``residuals.fit_program``; the
     stage, free set and weights are data), its stopping rule "optimum within 1e-4
     standard errors".
 ``normal equations``
@@ -54,7 +54,7 @@ from benchmarks import bench_fit
 from ewb_ident.data.readers import read_trace
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.inference import least_squares
-from ewb_ident.inference.problem import Z_NAMES, _columns, evaluate, seed_predictions
+from ewb_ident.inference.residuals import Z_NAMES, _columns, evaluate, seed_predictions
 from ewb_ident.model.numerics import one_blas_thread
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.runtime import programs

@@ -24,6 +24,7 @@ from typer.testing import CliRunner
 
 from ewb_ident import rig
 from ewb_ident.cli import app
+from ewb_ident.data.metrics import noise_sigma
 from ewb_ident.data.outputs import json_text
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.log_posterior import SampleError, SamplerSettings
@@ -119,13 +120,16 @@ def test_inference_data_has_every_group_and_loo_works(short_chain, tmp_path):
     assert math.isfinite(float(loo.elpd_loo)) and float(np.max(loo.pareto_k)) < 0.7
 
 
-def test_sampler_reproduces_an_analytic_posterior(force_torque):
+def test_sampler_reproduces_an_analytic_posterior():
     """The gap stage is linear in (p2, p1, p0) with affine coordinates: with the noise
     level integrated out (Jeffreys) and priors far wider than the data's precision, the
     posterior is Student-t with n - 3 degrees of freedom around the least-squares
     solution, scale s^2 (X^T X)^-1. The sampler's means, sds and correlations must match
-    it (a biased move, such as emcee 3.1.6's DESnookerMove, fails this)."""
-    trace, _ = force_torque
+    it (a biased move, such as emcee 3.1.6's DESnookerMove, fails this). The angle is
+    read without noise, so the stage carries none and its weights do not depend on the
+    parameters (with a noisy angle they do: ``carried_noise``)."""
+    quiet_angle = dataclasses.replace(rig.SensorNoise(), theta_deg=0.0)
+    trace, _ = rig.simulate_rig(rig.RigParams(), sample_rate_hz=200.0, seed=5, noise=quiet_angle)
     res = sample(trace, stage="gap", noise_model="white", seed=2)
     th, x = trace["theta_deg"], trace["x_m"]
     X = np.stack([th * th, th, np.ones_like(th)], axis=1)
@@ -211,7 +215,9 @@ def test_correlated_residuals_switch_on_ar1_and_widen_the_interval():
 
 
 def test_log_posterior_matches_an_independent_numpy_computation(force_torque):
-    """Prior + log-Jacobian + marginal likelihood Q^(-n/2), written out in NumPy."""
+    """Prior + log-Jacobian + marginal likelihood Q^(-n/2), written out in NumPy; each
+    sample weighed by the force sensor's noise level and the displacement's carried
+    through the bell at the parameters (half its change over +- sigma_x)."""
     from ewb_ident.inference.log_posterior import batched, build, v_logp_q
 
     trace, _ = force_torque
@@ -221,12 +227,17 @@ def test_log_posterior_matches_an_independent_numpy_computation(force_torque):
     U = u0 + 0.01 * np.random.default_rng(1).standard_normal((5, 3))
     got = batched(v_logp_q.bind(model), U, size=5)[0]
     x, F, sigma = trace["x_m"], trace["force_N"], res.fits[0].sigma[0]["force_N"]
+    sigma_x = noise_sigma(x)
     for u, value in zip(U, got, strict=True):
         a = PARAMS["a"].ref * math.exp(u[0])
         b = PARAMS["b"].ref * math.exp(u[1])
         c = PARAMS["c"].ref + PARAMS["c"].scale * u[2]
-        pred = 3500.0 / (1.0 + np.abs((x - c) / a) ** (2 * b))
-        q = np.sum(((pred - F) / sigma) ** 2)
+        def bell(z, a=a, b=b, c=c):
+            return 3500.0 / (1.0 + np.abs((z - c) / a) ** (2 * b))
+
+        pred = bell(x)
+        carried = 0.5 * np.abs(bell(x + sigma_x) - bell(x - sigma_x))
+        q = np.sum((pred - F) ** 2 / (sigma**2 + carried**2))
         prior = (
             sps.lognorm(1.0, scale=6.295e-4).logpdf(a)
             + sps.lognorm(0.75, scale=2.82).logpdf(b)

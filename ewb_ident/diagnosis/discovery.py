@@ -48,14 +48,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ewb_ident.data.stages import STAGE_OUTPUTS
-from ewb_ident.diagnosis.heldout import (
-    HELDOUT_BIC,
-    RIDGES,
-    Design,
-    folds,
-    lag1,
-    white_level,
-)
+from ewb_ident.diagnosis.heldout import HELDOUT_BIC, RIDGES, Design, folds, lag1, white_level
 from ewb_ident.diagnosis.inputs import (
     KNOTS,
     Column,
@@ -71,12 +64,7 @@ from ewb_ident.diagnosis.inputs import (
     sensor_signal,
     stacked,
 )
-from ewb_ident.diagnosis.places import (
-    own_sample_channels,
-    place_effect,
-    place_stages,
-    places_of,
-)
+from ewb_ident.diagnosis.places import own_sample_channels, place_effect, place_stages, places_of
 from ewb_ident.diagnosis.session import model_channels
 from ewb_ident.mechanisms.learned import PLACES
 from ewb_ident.model.integrate import motor_fine
@@ -296,13 +284,14 @@ def equation_of(
 
 def _linearised(ses, fit, place):
     """The residual ``r`` and Jacobian ``J`` of the fit ``fit`` at the current values,
-    its channels, their row weights, and ``G(U)``: the weighted change of every
+    its channels, their row weights (lowered where a teacher-forced stage carries its
+    measured input's noise), and ``G(U)``: the weighted change of every
     residual row a term at ``place`` with basis columns ``U`` (n, K) makes (``None``
     when the term shows in none of the fit's channels)."""
     from ewb_ident.inference.augmented import residuals_and_jacobian
 
     n = ses.trace.n
-    r, J, _ = residuals_and_jacobian(fit.problem, fit.u, ses.data)
+    r, J, pred = residuals_and_jacobian(fit.problem, fit.u, ses.data)
     r, J = np.asarray(r, float), np.asarray(J, float)
     chans = fit.problem.channels[0]
     n_pad = r.size // len(chans)
@@ -311,7 +300,10 @@ def _linearised(ses, fit, place):
         # No channel of the fit shows the place, or the fit cannot be linearised there (a
         # switching mechanism's Jacobian that is not finite): no term is learned at it.
         return r, J, chans, {}, None
-    weights = {ch: np.asarray(ses.data["w"][ch], float)[:n_pad] for ch in chans}
+    weights = {}  # as the fit applied them: each residual over its raw difference
+    for k, ch in enumerate(chans):
+        w, d = np.array(ses.data["w"][ch], float), np.asarray(pred[ch] - ses.data["meas"][ch])
+        weights[ch] = np.divide(r[k * n_pad : (k + 1) * n_pad], d, out=w, where=d != 0)[:n_pad]
 
     def G_of(U: np.ndarray) -> np.ndarray:
         blocks = []

@@ -33,6 +33,7 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.least_squares import fit_checked_traces as fit_stage
 from ewb_ident.inference.least_squares import start_of_checked_trace as start_of
 from ewb_ident.inference.problem import default_free
+from ewb_ident.inference.residuals import FORCED_INPUT
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
@@ -211,10 +212,15 @@ class Session:
             # the displacement sensor's noise hides, and that a friction state feels.
             theta_model = self.base_fits_motor_theta(vals)
             x_model = vals["p2"] * theta_model**2 + vals["p1"] * theta_model + vals["p0"]
+        # The fits weigh a teacher-forced stage's output by its sensor noise and its
+        # input's carried at the values being fitted (effective variance, see
+        # ``carried_noise``); ``sigma_tf`` (at the baseline values) is the checks' floor.
+        forced = {ch: self.noise[ch] for ch in FORCED_INPUT if ch in self.sigma_tf}
         data = make_data(
             tr,
-            self.sigma_tf,
+            self.sigma_tf | forced,
             vals,
+            carry={ch: self.noise.get(FORCED_INPUT[ch], 0.0) for ch in forced},
             x_play_m=xp,
             omega_ref=self.ctx.get("omega_ref", 1.0),
             theta_noise=self.noise.get("theta_deg"),

@@ -26,11 +26,14 @@ import numpy as np
 from ewb_ident.data.stages import CHANNELS, STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.inference.fit_result import FitResult
-from ewb_ident.inference.problem import (
+from ewb_ident.inference.problem import Problem
+from ewb_ident.inference.residuals import (
     FORCED_CHANNEL,
+    FORCED_INPUT,
     PROGRAM_COLUMNS,
     Z_NAMES,
-    Problem,
+    carried_noise,
+    effective_weight,
     fit_program,
 )
 from ewb_ident.inference.solvers import (
@@ -92,6 +95,7 @@ def make_data(
     theta_noise: float | None = None,
     x_smooth: int = 1,
     x_model: np.ndarray | None = None,
+    carry: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
     """The data pytree of a fit.
 
@@ -118,6 +122,12 @@ def make_data(
         Noise of the measured angle, degrees: the angle that drives a play operator
         (``backlash``, teacher-forced) is averaged where it stands still
         (:func:`slow_smooth`).
+    carry
+        Per channel a teacher-forced stage predicts, its measured input's noise level
+        (:func:`~ewb_ident.inference.problem.input_noise`): a teacher-forced fit weighs
+        that channel by its ``sigma`` and the input's noise carried through the stage
+        at the fitted values (:func:`~ewb_ident.inference.problem.carried_noise`).
+        Default none: ``sigma`` alone.
     """
     n = trace.n
     n_pad = padded_length(n)
@@ -143,6 +153,7 @@ def make_data(
             "meas": meas,
             "drive": drive,
             "w": w,
+            "carry": {c: float((carry or {}).get(c, 0.0)) for c in FORCED_INPUT},
             "fixed": {k: float(v) for k, v in fixed.items()},
             "dt": trace.dt,
             "t": np.arange(n_pad) * trace.dt,
@@ -168,7 +179,7 @@ def residuals_and_jacobian(problem: Problem, u, data):
     """Residuals, their Jacobian (forward mode) and the predictions, in one pass.
 
     Without mechanisms the problem is the seed model's, and the seed fits' one program
-    (:func:`ewb_ident.inference.problem.fit_program`, the stages' inputs chosen by
+    (:func:`ewb_ident.inference.residuals.fit_program`, the stages' inputs chosen by
     data) evaluates it: a diagnosis fits the seed model on seven combinations of stages,
     each of which would otherwise be compiled on its own."""
     if not problem.specs:
@@ -201,6 +212,7 @@ def _seed_residuals_and_jacobian(problem: Problem, u, data):
             "meas": {c: meas.get(c, zeros) for c in PROGRAM_COLUMNS},
             "w": {c: data["w"][c] if c in problem.channels[0] else zeros for c in CHANNELS},
             "forced": {c: float(s in forced) for s, c in FORCED_CHANNEL.items()},
+            "carry": {c: data["carry"][c] for c in FORCED_INPUT},
             "dt": data["dt"],
             "r_eff": data["r_eff"],
             "fixed": np.array([float(data["fixed"][n]) for n in Z_NAMES]),
@@ -216,13 +228,26 @@ def _seed_residuals_and_jacobian(problem: Problem, u, data):
     return r.reshape(-1), J.reshape(-1, len(cols)), {ch: pred[ch] for ch in outputs}
 
 
+def weights(problem: Problem, u, data) -> dict[str, Any]:
+    """The weight of each fitted channel's residual at ``u``: ``data["w"]``, lowered in
+    a teacher-forced fit where the stage carries its measured input's noise
+    (:func:`~ewb_ident.inference.problem.carried_noise` at ``u``)."""
+    w = data["w"]
+    if problem.stages == ("chain",):
+        return {ch: w[ch] for ch in problem.channels[0]}
+    p, theta0, terms = problem.build(u, data["fixed"])
+    carried = carried_noise(
+        p, theta0, terms, data, data["carry"], problem.stages, problem.n_sub[0], problem.method
+    )
+    return {ch: effective_weight(w[ch], carried.get(ch)) for ch in problem.channels[0]}
+
+
 @program(options=FAST_COMPILE)
 def _mechanism_program(problem: Problem, data, u):
     def f(v):
         pred = problem.predict_trace(v, data)
-        r = jnp.concatenate(
-            [(pred[ch] - data["meas"][ch]) * data["w"][ch] for ch in problem.channels[0]]
-        )
+        wt = weights(problem, v, data)
+        r = jnp.concatenate([(pred[ch] - data["meas"][ch]) * wt[ch] for ch in problem.channels[0]])
         return r, (r, pred)
 
     J, (r, pred) = jax.jacfwd(f, has_aux=True)(u)

@@ -17,7 +17,7 @@ again from there.
 Parameters are optimised in unconstrained O(1) coordinates (:mod:`ewb_ident.model.params`);
 standard errors come from the Jacobian at the optimum (delta method back to SI units).
 The solver is Levenberg-Marquardt in NumPy around one compiled program that returns the
-residuals and their Jacobian (:func:`ewb_ident.inference.problem.evaluate`); its status
+residuals and their Jacobian (:func:`ewb_ident.inference.residuals.evaluate`); its status
 is always checked. (optimistix's solver, compiled whole, cost 2-3 s of compilation per
 stage and free set, more than a whole warm fit; it remains the reference the tests
 compare this solver with.)
@@ -49,10 +49,10 @@ from ewb_ident.inference.problem import (
     Stage,
     build_setup,
     check_parameter_options,
-    evaluate,
     stage_inputs,
     usable,
 )
+from ewb_ident.inference.residuals import evaluate
 from ewb_ident.inference.solvers import (
     NULL_LIMIT,
     NearOptimum,

@@ -242,9 +242,10 @@ class _LogPost(eqx.Module):
         """(prediction, measurement, least-squares sigma) per trace and channel."""
         out = []
         for prob, data, (i0, i1) in zip(self.problems, self.datas, self.slices, strict=True):
+            sig = prob.sigmas(u[i0:i1], data)
             for k, pred in enumerate(prob.predict(u[i0:i1], data)):
                 tr = data["traces"][k]
-                out += [(pred[ch], tr[ch], tr["sigma"][ch]) for ch in prob.channels[k]]
+                out += [(pred[ch], tr[ch], sig[k][ch]) for ch in prob.channels[k]]
         return out
 
     def residuals(self, u: jnp.ndarray) -> list[jnp.ndarray]:

@@ -7,7 +7,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ewb_ident.inference.problem import build_setup, evaluate, to_u, usable
+from ewb_ident.inference.problem import build_setup, to_u, usable
+from ewb_ident.inference.residuals import evaluate
 from ewb_ident.model.params import PARAMS
 
 

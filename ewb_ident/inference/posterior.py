@@ -313,6 +313,10 @@ class _AugChain(eqx.Module):
         pred = self.problem.predict_trace(u, data["aug"])
         return [{ch: pred[ch][: self.n] for ch in self.channels[0]}]
 
+    def sigmas(self, u: jnp.ndarray, data: Mapping[str, Any]) -> list[dict[str, Any]]:
+        """The channels' noise levels (a chain: nothing carried from a measured input)."""
+        return [data["traces"][0]["sigma"]]
+
 
 @dataclass(frozen=True)
 class _CorrectedStart:

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -20,10 +19,16 @@ from ewb_ident.data.metrics import (
 from ewb_ident.data.stages import CHANNELS, STAGE_COLUMNS, STAGE_PARAMS, STAGES
 from ewb_ident.data.trace import InputError, Trace, TraceError
 from ewb_ident.inference.initial import motor_lag
+from ewb_ident.inference.residuals import (
+    FORCED_CHANNEL,
+    carried_noise,
+    input_noise,
+    program_data,
+)
 from ewb_ident.model.integrate import heun_amplification
 from ewb_ident.model.params import MODEL_PARAMS, PARAMS, EWBParams
 from ewb_ident.model.predict import predict
-from ewb_ident.runtime.programs import on_device, pad_to, padded_length, program
+from ewb_ident.runtime.programs import on_device
 
 Stage = Literal["motor", "gap", "force", "torque", "chain"]
 
@@ -202,155 +207,41 @@ class Problem(eqx.Module):
             preds.append(self.predict_trace(u, d, k))
         return preds
 
+    def sigmas(self, u: jnp.ndarray, data: dict) -> list[dict[str, jnp.ndarray]]:
+        """Per trace, the noise level of each fitted channel's residual at ``u``: its
+        ``sigma``, and in a teacher-forced stage also its measured input's noise carried
+        through the stage at ``u`` (:func:`carried_noise`)."""
+        out = []
+        forced = self.stages != ("chain",)
+        for k, tr in enumerate(data["traces"]):
+            carried = {}
+            if forced:
+                fixed = dict(data["fixed"]) | {"theta0_deg": tr["theta0_deg"]}
+                d = {"meas": tr, "dt": tr["dt"], "r_eff": tr["r_eff_m"], "fixed": fixed}
+                p, theta0, terms = self.build(u, fixed, k)
+                carry = tr.get("carry", {})
+                carried = carried_noise(
+                    p, theta0, terms, d, carry, self.stages, self.n_sub[k], self.method
+                )
+            out.append(
+                {
+                    ch: jnp.sqrt(tr["sigma"][ch] ** 2 + carried[ch] ** 2)
+                    if ch in carried
+                    else tr["sigma"][ch]
+                    for ch in self.channels[k]
+                }
+            )
+        return out
+
     def __call__(self, u: jnp.ndarray, data: dict) -> jnp.ndarray:
         """Weighted residuals of the fitted channels, trace by trace (layout of :meth:`predict`)."""
         res = []
+        sig = self.sigmas(u, data)
         for k, pred in enumerate(self.predict(u, data)):
             tr = data["traces"][k]
             for ch in self.channels[k]:
-                res.append((pred[ch] - tr[ch]) / tr["sigma"][ch])
+                res.append((pred[ch] - tr[ch]) / sig[k][ch])
         return jnp.concatenate(res)
-
-
-#: The coordinates of the compiled fit program, per trace: every model parameter and
-#: the start angle (unconstrained, as in :data:`ewb_ident.model.params.PARAMS`).
-Z_NAMES: tuple[str, ...] = (*MODEL_PARAMS, "theta0_deg")
-#: Columns the program reads (an absent one is zeros, weighted zero).
-PROGRAM_COLUMNS: tuple[str, ...] = ("voltage_V", *CHANNELS)
-#: The channel each teacher-forced stage predicts from its measured input.
-FORCED_CHANNEL: dict[str, str] = {"gap": "x_m", "force": "force_N", "torque": "torque_Nm"}
-
-
-def seed_predictions(p: EWBParams, theta0_deg, d: dict, n_sub: int, method: str) -> dict:
-    """Every channel of the seed model from the voltage (the whole chain), except that a
-    stage whose ``d["forced"][output]`` is 1 reads its measured input instead
-    (teacher-forced): the gap the measured angle, the bell the measured displacement,
-    the torque the measured force.
-
-    One function for every stage, so that a single compiled program serves the chain,
-    the stage fits of its start, and the stage commands: the one evaluator,
-    :func:`ewb_ident.model.predict.predict` of ``"chain"`` without mechanisms, the
-    choice of input made by data (``tests/test_fit.py`` checks that it agrees with the
-    teacher-forced stages).
-    """
-    return predict("chain", p, theta0_deg, (), d, n_sub, method)
-
-
-@program
-def fit_program(n_sub: tuple[int, ...], method: str, Z, traces):
-    """Per trace ``k``: weighted residuals of every channel, shape (channels, samples),
-    their Jacobian with respect to ``Z[k]`` (forward mode), and the predictions.
-
-    ``Z[k]`` holds the :data:`Z_NAMES` coordinates; where ``traces[k]["free"]`` is 0 the
-    parameter takes its value from ``traces[k]["fixed"]`` (SI) instead. Which
-    parameters are free, which channels are fitted (a weight of 0 drops a channel or a
-    padded sample) and which stages are teacher-forced are all data, so one program
-    serves every fit of traces of these padded lengths.
-    """
-    out = []
-    for k, d in enumerate(traces):
-
-        def residuals(z, d=d, k=k):
-            vals = {
-                n: jnp.where(d["free"][j] > 0, PARAMS[n].to_physical(z[j]), d["fixed"][j])
-                for j, n in enumerate(Z_NAMES)
-            }
-            p = EWBParams(**{n: vals[n] for n in MODEL_PARAMS})
-            pred = seed_predictions(p, vals["theta0_deg"], d, n_sub[k], method)
-            r = jnp.stack(
-                [
-                    jnp.where(d["w"][ch] > 0, (pred[ch] - d["meas"][ch]) * d["w"][ch], 0.0)
-                    for ch in CHANNELS
-                ]
-            )
-            return r, (r, pred)
-
-        J, (r, pred) = jax.jacfwd(residuals, has_aux=True)(Z[k])
-        out.append((r, J, pred))
-    return out
-
-
-def program_data(problem: Problem, tdata: Sequence[dict], sigma, base: dict) -> list[dict]:
-    """What :func:`fit_program` reads of each trace, padded to
-    :func:`~ewb_ident.runtime.programs.padded_length`: the columns, the weights of the
-    fitted channels, the teacher-forcing flags, the fixed values and the free mask."""
-    out = []
-    forced_ch = FORCED_CHANNEL.get(problem.stages[0])
-    for k, (d, s) in enumerate(zip(tdata, sigma, strict=True)):
-        n = _length(d)
-        n_pad = padded_length(n)
-        meas = {
-            c: pad_to(np.asarray(d[c], float), n_pad) if c in d else np.zeros(n_pad)
-            for c in PROGRAM_COLUMNS
-        }
-        w = {}
-        for ch in CHANNELS:
-            wk = np.zeros(n_pad)
-            if ch in problem.channels[k]:
-                wk[:n] = 1.0 / float(s[ch])
-            w[ch] = wk
-        free = set(problem.shared) | set(problem.per_trace)
-        fixed = dict(base) | {"theta0_deg": float(d["theta0_deg"])}
-        out.append(
-            {
-                "meas": meas,
-                "w": w,
-                "forced": {c: np.asarray(float(c == forced_ch)) for c in FORCED_CHANNEL.values()},
-                "dt": np.asarray(float(d["dt"])),
-                "r_eff": np.asarray(float(d["r_eff_m"])),
-                "fixed": np.array([float(fixed[n]) for n in Z_NAMES]),
-                "free": np.array([float(n in free) for n in Z_NAMES]),
-            }
-        )
-    return on_device(out)  # once, not at every call of the program
-
-
-def _length(d: dict) -> int:
-    """Samples of a trace's data (the length of its first column)."""
-    return next(int(np.asarray(v).shape[0]) for c, v in d.items() if c in PROGRAM_COLUMNS)
-
-
-def _columns(problem: Problem, n_traces: int) -> np.ndarray:
-    """For each trace and each :data:`Z_NAMES` coordinate, its index in ``u`` (-1:
-    fixed), shape (traces, coordinates)."""
-    cols = np.full((n_traces, len(Z_NAMES)), -1)
-    for k in range(n_traces):
-        for i, name in enumerate(problem.shared):
-            cols[k, Z_NAMES.index(name)] = i
-        offset = len(problem.shared) + k * len(problem.per_trace)
-        for i, name in enumerate(problem.per_trace):
-            cols[k, Z_NAMES.index(name)] = offset + i
-    return cols
-
-
-def evaluate(problem: Problem, u, data: dict, predictions: bool = True):
-    """Weighted residuals (fitted channels, trace by trace), the predictions of every
-    channel per trace (``None`` unless ``predictions``), and the Jacobian with respect
-    to ``u``, at ``u``.
-
-    One compiled program (:func:`fit_program`) per set of padded trace lengths serves
-    every stage, free set and weighting: a fit, its start's stage fits and its
-    null-direction checks compile nothing after the first.
-    """
-    u = np.asarray(u, float)
-    pdata = data["program"]
-    cols = _columns(problem, len(pdata))
-    Z = np.where(cols >= 0, u[np.maximum(cols, 0)] if u.size else 0.0, 0.0)
-    outs = fit_program(problem.n_sub, problem.method, Z, pdata)
-    rs, Js, preds = [], [], []
-    for k, (r, J, pred) in enumerate(outs):
-        n = _length(data["traces"][k])
-        rows = [CHANNELS.index(ch) for ch in problem.channels[k]]
-        r = np.asarray(r)[rows, :n].reshape(-1)
-        J = np.asarray(J)[rows, :n].reshape(-1, len(Z_NAMES))
-        Ju = np.zeros((r.size, u.size))
-        free = cols[k] >= 0
-        Ju[:, cols[k][free]] = J[:, free]
-        rs.append(r)
-        Js.append(Ju)
-        if predictions:
-            preds.append({ch: np.asarray(v)[:n] for ch, v in pred.items()})
-    return np.concatenate(rs), preds if predictions else None, np.concatenate(Js)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -362,6 +253,8 @@ def trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
     d["dt"] = trace.dt
     d["r_eff_m"] = trace.r_eff_m
     d["theta0_deg"] = float(np.median(trace["theta_deg"][:5])) if trace.has("theta_deg") else 0.0
+    if stage in FORCED_CHANNEL:
+        d["carry"] = {FORCED_CHANNEL[stage]: input_noise(trace)[FORCED_CHANNEL[stage]]}
     return on_device(d)
 
 
