@@ -156,15 +156,8 @@ def fitted(job: TraceJob) -> tuple[dict[str, Any], Trace | None]:
     """:func:`fit_job`'s record, and the trace as read (``None`` when it could not be
     read or fitted), for a diagnosis of the same trace."""
     t0 = time.perf_counter()
-    record: dict[str, Any] = {
-        "key": job.key,
-        "trace": job.trace,
-        "params": {},
-        "metrics": {},
-        "warnings": [],
-        "r_eff_m": None,
-        "converged": None,
-    }
+    record: dict[str, Any] = {"key": job.key, "trace": job.trace, "params": {}, "metrics": {},
+                              "warnings": [], "r_eff_m": None, "converged": None}
     try:
         trace = read_trace(
             job.path,
@@ -176,20 +169,16 @@ def fitted(job: TraceJob) -> tuple[dict[str, Any], Trace | None]:
         trace = with_pad_radius(trace, job.r_eff_m)
         result = fit(trace)
     except Exception as err:  # a failed trace is a row of the table, not a crash
-        return record | {
-            "status": "error",
-            "message": error_line(err),
-            "fit_seconds": time.perf_counter() - t0,
-        }, None
+        return record | {"status": "error", "message": error_line(err),
+                         "fit_seconds": time.perf_counter() - t0}, None
     effective = () if trace.has("current_A") else EFFECTIVE_WITHOUT_CURRENT
     names = [n for n in result.free if n in MODEL_PARAMS and n not in effective]
     record["params"] = parameter_rows(
         {n: float(result.values[n]) for n in names}, result.stderr, PARAMS_UNITS
     )
     metrics = result.trace_metrics[0]
-    record["metrics"] = {
-        ch: (metrics.get(ch) or {}).get("nrmse_pct") for ch in CHANNELS if ch in metrics
-    }
+    record["metrics"] = {ch: (metrics.get(ch) or {}).get("nrmse_pct") for ch in CHANNELS
+                         if ch in metrics}
     record |= {
         "status": result.status,
         "message": _why(result),
@@ -205,10 +194,8 @@ def fitted(job: TraceJob) -> tuple[dict[str, Any], Trace | None]:
         try:
             post = sample(trace, settings=job.posterior)
         except Exception as err:  # the fit's row stands, with the sampler's error
-            record |= {
-                "posterior_converged": False,
-                "posterior_message": f"posterior not sampled: {error_line(err)}",
-            }
+            record |= {"posterior_converged": False,
+                       "posterior_message": f"posterior not sampled: {error_line(err)}"}
         else:
             record |= with_posterior(record["params"], post)
         record["posterior_seconds"] = time.perf_counter() - t1
@@ -254,13 +241,8 @@ def with_posterior(params: dict[str, dict[str, Any]], post) -> dict[str, Any]:
         lo, hi = st.get("hdi_low"), st.get("hdi_high")
         if st.get("source") != "posterior" or lo is None or hi is None:
             continue
-        row |= {
-            "low_90": float(lo),
-            "high_90": float(hi),
-            "interval_from": FROM_POSTERIOR,
-            "posterior_mean": st.get("mean"),
-            "posterior_sd": st.get("sd"),
-        }
+        row |= {"low_90": float(lo), "high_90": float(hi), "interval_from": FROM_POSTERIOR,
+                "posterior_mean": st.get("mean"), "posterior_sd": st.get("sd")}
     first = " ".join((post.warnings or ("no reason given",))[0].split())
     said = None if post.converged else f"posterior not converged: {first}"
     return {"posterior_converged": bool(post.converged), "posterior_message": said}

@@ -253,10 +253,9 @@ def two_level(
             return _within_q(t2, yy, vv, groups)
 
         tau2 = _q_profile(y, v, float(df_within), q)
-        bounds = [
-            math.sqrt(_q_profile(y, v, float(stats.chi2.ppf(0.5 + side * LEVEL / 2, df_within)), q))
-            for side in (1, -1)
-        ]
+        bounds = [math.sqrt(_q_profile(y, v, float(stats.chi2.ppf(0.5 + side * LEVEL / 2,
+                                                                  df_within)), q))
+                  for side in (1, -1)]
         tau_t = (math.sqrt(tau2), *bounds)
     else:
         tau2, tau_t = 0.0, (None, None, None)
@@ -393,15 +392,7 @@ def trend(
     tol = practical_tolerance(name, start, tolerance)
     dist = stats.t(df)
     p = float(dist.cdf((drift - tol) / drift_se) + dist.cdf((-drift - tol) / drift_se))
-    change = ParameterChange(
-        name,
-        start,
-        start + drift,
-        drift,
-        drift_se,
-        drift - t * drift_se,
-        drift + t * drift_se,
-        tol,
-        p,
-    )
-    return Trend(k, slope, se, slope - t * se, slope + t * se, df, x0, x1, change, math.sqrt(tau2))
+    change = ParameterChange(name, start, start + drift, drift, drift_se, drift - t * drift_se,
+                             drift + t * drift_se, tol, p)
+    return Trend(k, slope, se, slope - t * se, slope + t * se, df, x0, x1, change,
+                 math.sqrt(tau2))
