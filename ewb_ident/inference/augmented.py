@@ -124,9 +124,9 @@ def make_data(
         (:func:`slow_smooth`).
     carry
         Per channel a teacher-forced stage predicts, its measured input's noise level
-        (:func:`~ewb_ident.inference.problem.input_noise`): a teacher-forced fit weighs
+        (:func:`~ewb_ident.inference.residuals.input_noise`): a teacher-forced fit weighs
         that channel by its ``sigma`` and the input's noise carried through the stage
-        at the fitted values (:func:`~ewb_ident.inference.problem.carried_noise`).
+        at the fitted values (:func:`~ewb_ident.inference.residuals.carried_noise`).
         Default none: ``sigma`` alone.
     """
     n = trace.n
@@ -231,7 +231,7 @@ def _seed_residuals_and_jacobian(problem: Problem, u, data):
 def weights(problem: Problem, u, data) -> dict[str, Any]:
     """The weight of each fitted channel's residual at ``u``: ``data["w"]``, lowered in
     a teacher-forced fit where the stage carries its measured input's noise
-    (:func:`~ewb_ident.inference.problem.carried_noise` at ``u``)."""
+    (:func:`~ewb_ident.inference.residuals.carried_noise` at ``u``)."""
     w = data["w"]
     if problem.stages == ("chain",):
         return {ch: w[ch] for ch in problem.channels[0]}

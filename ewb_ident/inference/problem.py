@@ -254,7 +254,7 @@ def trace_data(trace: Trace, stage: str, channels: tuple[str, ...]) -> dict:
     d["r_eff_m"] = trace.r_eff_m
     d["theta0_deg"] = float(np.median(trace["theta_deg"][:5])) if trace.has("theta_deg") else 0.0
     if stage in FORCED_CHANNEL:
-        d["carry"] = {FORCED_CHANNEL[stage]: input_noise(trace)[FORCED_CHANNEL[stage]]}
+        d["carry"] = {FORCED_CHANNEL[stage]: input_noise(trace, FORCED_CHANNEL[stage])}
     return on_device(d)
 
 

@@ -39,14 +39,12 @@ FORCED_CHANNEL: dict[str, str] = {"gap": "x_m", "force": "force_N", "torque": "t
 FORCED_INPUT: dict[str, str] = {STAGE_COLUMNS[s][1]: STAGE_COLUMNS[s][0] for s in FORCED_CHANNEL}
 
 
-def input_noise(trace: Trace) -> dict[str, float]:
-    """Per channel a teacher-forced stage predicts, the white-noise level of its measured
-    input (:func:`~ewb_ident.data.metrics.noise_sigma`, in the input's unit; 0 when the
-    trace does not record it)."""
-    return {
-        ch: float(noise_sigma(trace[inp])) if trace.has(inp) else 0.0
-        for ch, inp in FORCED_INPUT.items()
-    }
+def input_noise(trace: Trace, ch: str) -> float:
+    """The white-noise level of the measured input of the teacher-forced stage that
+    predicts ``ch`` (:func:`~ewb_ident.data.metrics.noise_sigma`, in the input's unit; 0
+    when the trace does not record it)."""
+    inp = FORCED_INPUT[ch]
+    return float(noise_sigma(trace[inp])) if trace.has(inp) else 0.0
 
 
 def carried_noise(
