@@ -33,7 +33,7 @@ from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.least_squares import fit_checked_traces as fit_stage
 from ewb_ident.inference.least_squares import start_of_checked_trace as start_of
 from ewb_ident.inference.problem import default_free
-from ewb_ident.inference.residuals import FORCED_INPUT
+from ewb_ident.inference.residuals import FORCED_INPUT, carried_noise
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
@@ -244,28 +244,19 @@ class Session:
         return np.asarray(theta) * (180.0 / np.pi)
 
     def _stage_sigma(self, v: Mapping[str, float]) -> dict[str, np.ndarray]:
-        """Noise floor per sample of each teacher-forced stage's output."""
+        """Noise floor per sample of each teacher-forced stage's output: its sensor's
+        noise and its measured input's carried through the stage at the values ``v``
+        (:func:`~ewb_ident.inference.residuals.carried_noise`, as the fits weigh it)."""
         tr, nz = self.trace, self.noise
-        out: dict[str, np.ndarray] = {}
         n = tr.n
-        for s in self.stages:
-            if s == "motor":
-                for ch in ("theta_deg", "current_A"):
-                    if tr.has(ch):
-                        out[ch] = np.full(n, nz[ch])
-            elif s == "gap":
-                th = tr["theta_deg"]
-                g = 2 * v["p2"] * th + v["p1"]
-                out["x_m"] = np.sqrt(nz["x_m"] ** 2 + (g * nz["theta_deg"]) ** 2)
-            elif s == "force":
-                x = tr["x_m"]
-                hx = 1e-3 * abs(v["a"])
-                f = lambda z: np.asarray(clamp_force(z, v["F_rt"], v["a"], v["b"], v["c"]))  # noqa: E731
-                g = (f(x + hx) - f(x - hx)) / (2 * hx)
-                out["force_N"] = np.sqrt(nz["force_N"] ** 2 + (g * nz["x_m"]) ** 2)
-            elif s == "torque":
-                g = 2 * v["mu"] * tr.r_eff_m
-                out["torque_Nm"] = np.sqrt(nz["torque_Nm"] ** 2 + (g * nz["force_N"]) ** 2)
+        out: dict[str, np.ndarray] = {}
+        if "motor" in self.stages:
+            out |= {ch: np.full(n, nz[ch]) for ch in ("theta_deg", "current_A") if tr.has(ch)}
+        p = EWBParams(**{k: float(v[k]) for k in EWBParams().as_dict()})
+        d = {"meas": {c: tr[c] for c in CHANNELS if tr.has(c)}, "dt": tr.dt, "r_eff": tr.r_eff_m}
+        carry = {ch: nz.get(inp, 0.0) for ch, inp in FORCED_INPUT.items()}
+        carried = carried_noise(p, v["theta0_deg"], (), d, carry, self.stages, 1, "exponential")
+        out |= {ch: np.sqrt(nz[ch] ** 2 + np.asarray(c) ** 2) for ch, c in carried.items()}
         return {ch: np.broadcast_to(np.asarray(v, float), (n,)).copy() for ch, v in out.items()}
 
     # -- fits
