@@ -38,7 +38,9 @@ Usage (rows are appended after each case, so a run resumes)::
     python -m studies.discovery_uncatalogued --seed S --out DIR --report-only
 
 ``--rig probe`` draws the cases from ``validation_rigs/probe_rig.py`` instead: six more
-families outside the catalog and this rig's fourteen, written later as a blind probe.
+families outside the catalog and this rig's fourteen, written later as a blind probe;
+``--rig probe2`` from ``validation_rigs/probe2_rig.py``: six more again, written as a
+second blind probe after the first's report.
 """
 
 from __future__ import annotations
@@ -54,13 +56,13 @@ from typing import Any
 import numpy as np
 
 from studies.diagnosis_accuracy import _read
-from validation_rigs import probe_rig
+from validation_rigs import probe2_rig, probe_rig
 from validation_rigs import uncatalogued_rig as ur
 
 #: The independent rigs the cases come from (``--rig``): the fourteen families of the
-#: uncatalogued rig, or the six of the probe rig (written later as a blind probe of
-#: discovery; its clean traces are the uncatalogued rig's).
-RIGS = {"uncatalogued": ur, "probe": probe_rig}
+#: uncatalogued rig, or the six of a probe rig (each written later as a blind probe of
+#: discovery; their clean traces are the uncatalogued rig's).
+RIGS = {"uncatalogued": ur, "probe": probe_rig, "probe2": probe2_rig}
 
 HERE = Path(__file__).resolve().parent
 

@@ -129,3 +129,26 @@ def test_a_reading_held_on_its_grid_may_be_off_by_half_a_step():
     rms = float(np.sqrt(np.mean(check.normalized[hold] ** 2)))
     assert rms > 1.5  # beyond the white rounding level the floor had before
     assert phase_floor_scale(check, hold) >= rms
+
+
+@pytest.mark.parametrize("rig_name", ["probe_rig", "probe2_rig"])
+def test_probe_rigs_draw_visible_concealed_reproducible_cases(rig_name):
+    """Each family and form of a blind-probe rig is drawn visible (>= 3x the noise on
+    some channel) and concealed (force and torque within 10 % of the same rig without
+    it), the same case twice from the same seed; the rig imports nothing of the tool."""
+    import importlib
+    from pathlib import Path
+
+    rig = importlib.import_module(f"validation_rigs.{rig_name}")
+    assert "ewb_ident" not in Path(rig.__file__).read_text(encoding="utf-8")
+    for fam in rig.FAMILIES:
+        for form in ("a", "b"):
+            case = rig.make_case(fam, form, 4242, 1)
+            tr = case.truth
+            assert tr["visibility"] >= 3.0, (fam, form)
+            assert max(tr["concealed_force_pct"], tr["concealed_torque_pct"]) < 10.0
+            if fam in rig.CURRENT_ALWAYS:
+                assert tr["has_current"] and "current_A" in case.table
+            again = rig.make_case(fam, form, 4242, 1)
+            for k, v in case.table.items():
+                np.testing.assert_array_equal(np.asarray(v), np.asarray(again.table[k]))

@@ -44,6 +44,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -114,6 +115,10 @@ for _f in FAMILIES.values():
     _f["forms"] = ("a", "b")
 
 _MOTOR = {"driver_lag", "torque_ripple"}
+#: Families whose cases always record the current (none here).
+CURRENT_ALWAYS: frozenset[str] = frozenset()
+#: The rig's name (its cases' seeds and descriptions).
+NAME = "probe"
 
 #: Starting strength ranges (lo, hi), open loop / closed loop; the rescale rule of the
 #: uncatalogued rig then makes each case visible and concealed.
@@ -149,7 +154,7 @@ _SIZE: dict[tuple[str, str], dict] = {
 }
 
 
-class ProbeMotorEffect:
+class MotorEffect:
     """Motor term ``f(i, w, th, V) -> (voltage removed [V], load torque [N m])`` with the
     hooks ``run_motor`` of the uncatalogued rig uses (``h``, ``advance``, ``stiff``)."""
 
@@ -186,7 +191,7 @@ class ProbeMotorEffect:
             raise ValueError(family)
 
 
-def draw_extras(family: str, form: str, rng: np.random.Generator) -> dict:
+def draw_extras(family: str, form: str, rng: np.random.Generator, twin=None) -> dict:
     ex: dict = {}
     if family == "disc_runout":
         ex["phi0"] = float(rng.uniform(0, 2 * np.pi))
@@ -199,7 +204,7 @@ def draw_extras(family: str, form: str, rng: np.random.Generator) -> dict:
     return ex
 
 
-def effect_params(family: str, form: str, s: float, ex: dict) -> dict:
+def effect_params(family: str, form: str, s: float, ex: dict, p=None) -> dict:
     prm = dict(ex)
     prm["strength"] = s
     key = {
@@ -269,7 +274,8 @@ def probe_chain(
     raise ValueError(family)
 
 
-def make_case(
+def make_probe_case(
+    rig: Any,
     family: str,
     form: str,
     seed: int,
@@ -280,10 +286,13 @@ def make_case(
     has_current: bool | None = None,
     duration_s: float | None = None,
 ) -> Case:
-    """One probe case, drawn as ``uncatalogued_rig.make_case`` draws its cases."""
+    """One case of a probe rig module ``rig`` (its ``NAME``, ``FAMILIES``, ``_SIZE``,
+    ``_MOTOR``, ``MotorEffect``, ``draw_extras``, ``effect_params``, ``probe_chain`` and
+    ``CURRENT_ALWAYS``), drawn as ``uncatalogued_rig.make_case`` draws its cases."""
+    FAMILIES, _SIZE = rig.FAMILIES, rig._SIZE  # noqa: N806
     if family not in FAMILIES or form not in ("a", "b"):
         raise ValueError(f"unknown family/form {family}/{form}")
-    ss = np.random.SeedSequence([seed, index, _code(family), _code(form), _code("probe")])
+    ss = np.random.SeedSequence([seed, index, _code(family), _code(form), _code(rig.NAME)])
     r_rig, r_plan, r_noise, r_eff = (np.random.default_rng(c) for c in ss.spawn(4))
     p = _draw_rig(r_rig)
     rate = int(r_plan.choice(RATES_HZ))
@@ -296,6 +305,7 @@ def make_case(
     prof = profile or prof
     dur = float(duration_s) if duration_s is not None else 3.0
     cur_on = cur_on if has_current is None else bool(has_current)
+    cur_on = cur_on or family in rig.CURRENT_ALWAYS
     n_cyc = 2 if prof == "staircase" else int(r_plan.integers(2, 4))
     if dur > 4.5:
         n_cyc = max(2, round(dur / (1.6 if prof == "staircase" else 1.2)))
@@ -313,17 +323,17 @@ def make_case(
     rec0, _, _, _ = chain(p, mot0, dt, w_disc)
     t = np.arange(n) * dt
     info = FAMILIES[family]
-    ex = draw_extras(family, form, r_eff)
+    ex = rig.draw_extras(family, form, r_eff, mot0)
     size = _SIZE[(family, form)]
     lo, hi = size["open" if prof == "steps" else "closed"]
     s0 = float(np.exp(r_eff.uniform(np.log(lo), np.log(hi))))
 
     def attempt(s):
-        prm = effect_params(family, form, s, ex)
+        prm = rig.effect_params(family, form, s, ex, p)
         mot = mot0
-        if family in _MOTOR:
-            mot = run_motor(p, dt, n, theta0, fx=ProbeMotorEffect(family, form, prm, p), **kw)
-        rec = probe_chain(p, mot, dt, w_disc, family, form, prm)
+        if family in rig._MOTOR:
+            mot = run_motor(p, dt, n, theta0, fx=rig.MotorEffect(family, form, prm, p), **kw)
+        rec = rig.probe_chain(p, mot, dt, w_disc, family, form, prm)
         return (prm, mot, *rec), visibility(rec[0], rec0, sig, cur_on)
 
     (prm, mot, rec, term, tin, tname), hist = rescale(attempt, s0, 16)
@@ -368,30 +378,37 @@ def make_case(
         released_between=rel_ok,
         peak_force_frac=pk,
     )
-    desc = f"probe rig: {family}/{form}, profile {prof}, {rate} Hz; synthetic, see truth file"
+    desc = f"{rig.NAME} rig: {family}/{form}, profile {prof}, {rate} Hz; synthetic, see truth file"
     sidecar = {
         "r_eff_m": p["r_eff"],
         "sample_rate_hz": rate,
         "disc_mode": "drag",
-        "hardware": "probe rig (independent simulator)",
+        "hardware": f"{rig.NAME} rig (independent simulator)",
         "description": desc,
     }
     return Case(table, sidecar, truth, np.asarray(term, float), np.asarray(tin, float), tname)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def make_case(family: str, form: str, seed: int, index: int, **kw: Any) -> Case:
+    """One probe case (:func:`make_probe_case` of this rig; keywords ``rate_hz``,
+    ``profile``, ``has_current``, ``duration_s``)."""
+    return make_probe_case(sys.modules[__name__], family, form, seed, index, **kw)
+
+
+def run_cli(rig: Any, argv: list[str] | None = None) -> int:
+    """The command line of a probe rig module: write its cases, one line each."""
+    ap = argparse.ArgumentParser(description=rig.__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--per-form", type=int, default=2)
     ap.add_argument("--first-index", type=int, default=0)
-    ap.add_argument("--families", default=",".join(FAMILIES))
+    ap.add_argument("--families", default=",".join(rig.FAMILIES))
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     for fam in args.families.split(","):
         for form in ("a", "b"):
             for i in range(args.first_index, args.first_index + args.per_form):
-                c = make_case(fam, form, args.seed, i)
+                c = rig.make_case(fam, form, args.seed, i)
                 name = f"{fam}_{form}_{i:03d}"
                 write_case(c, args.out, name)
                 tr = c.truth
@@ -409,6 +426,10 @@ def main(argv: list[str] | None = None) -> int:
                 )
     print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(sys.modules[__name__], argv)
 
 
 if __name__ == "__main__":
