@@ -64,9 +64,7 @@ class Design:
     norms: np.ndarray
     #: Rows of the located stage's channels (a sensor's term also shows downstream).
     stage_rows: np.ndarray | None = None
-    _grams: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]] = field(
-        default_factory=list, repr=False
-    )
+    _grams: list[np.ndarray] = field(default_factory=list, repr=False)
 
     @property
     def n_folds(self) -> int:
@@ -75,15 +73,23 @@ class Design:
     def __post_init__(self):
         A = self._A = np.concatenate([self.J, self.G], axis=1)
         own = np.ones(self.r.size, bool) if self.stage_rows is None else self.stage_rows
-        self._stage_grams = []
+        grams: list[list] = [[] for _ in range(5)]
+        stage: list[list] = [[] for _ in range(3)]
         for k in range(self.n_folds):
             te = self.fold == k
             tr = ~te & (self.fold >= 0)
             At, rt = A[tr], self.r[tr]
             Ae, re = A[te], self.r[te]
-            self._grams.append((At.T @ At, At.T @ rt, Ae.T @ Ae, Ae.T @ re, float(re @ re)))
             As, rs = A[te & own], self.r[te & own]
-            self._stage_grams.append((As.T @ As, As.T @ rs, float(rs @ rs)))
+            for lst, v in zip(
+                grams, (At.T @ At, At.T @ rt, Ae.T @ Ae, Ae.T @ re, re @ re), strict=True
+            ):
+                lst.append(v)
+            for lst, v in zip(stage, (As.T @ As, As.T @ rs, rs @ rs), strict=True):
+                lst.append(v)
+        # Stacked over the folds (the first axis), for one batched solve per subset.
+        self._grams = [np.asarray(v, float) for v in grams]
+        self._stage_grams = [np.asarray(v, float) for v in stage]
         self._full = (A.T @ A, A.T @ self.r, float(self.r @ self.r))
 
     @property
@@ -94,40 +100,61 @@ class Design:
         """Columns of the stage's parameters and of the term columns ``terms``."""
         return np.r_[np.arange(self.kb), self.kb + np.asarray(terms, int)].astype(int)
 
+    def _penalty(self, d: np.ndarray, lams: np.ndarray) -> np.ndarray:
+        """Ridge penalties on the diagonal, shape ``lams.shape + d.shape``, for the
+        diagonals ``d`` (``(..., m)``) of a subset's Gram matrices: a vanishing one on the
+        stage's parameters, ``lam`` times the mean diagonal on the term's columns."""
+        kb = self.kb
+        pen = np.broadcast_to(1e-9 * (d + 1e-300), lams.shape + d.shape).copy()
+        if d.shape[-1] > kb:
+            dt = d[..., kb:]
+            scale = np.where(np.any(dt != 0, axis=-1), np.mean(dt, axis=-1), 1.0)
+            pen[..., kb:] = lams.reshape(lams.shape + (1,) * d.ndim) * scale[..., None]
+        return pen
+
     def _solve(self, M, b, idx, lam):
-        Mi = M[np.ix_(idx, idx)]
-        d = np.diag(Mi).copy()
-        pen = np.where(np.arange(len(idx)) < self.kb, 1e-9 * (d + 1e-300), 0.0)
-        if len(idx) > self.kb:
-            term_scale = float(np.mean(d[self.kb :])) if np.any(d[self.kb :]) else 1.0
-            pen[self.kb :] = lam * term_scale
+        """Coefficients on the subset ``idx``: ``M`` of shape ``(..., p, p)`` and ``b``
+        ``(..., p)`` (a stack of folds solved at once), ``lam`` a scalar or 1-d array of
+        ridge penalties (a leading axis of the result)."""
+        lams = np.atleast_1d(np.asarray(lam, float))
+        Mi = M[..., idx[:, None], idx[None, :]]
+        d = np.diagonal(Mi, axis1=-2, axis2=-1)
+        pen = self._penalty(d, lams)
+        lhs = Mi[None] + pen[..., :, None] * np.eye(len(idx))
+        rhs = np.broadcast_to(-b[..., idx], lhs.shape[:-1])
         try:
-            return np.linalg.solve(Mi + np.diag(pen), -b[idx])
+            x = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         except np.linalg.LinAlgError:
-            return np.linalg.lstsq(Mi + np.diag(pen), -b[idx], rcond=None)[0]
+            x = np.empty(rhs.shape)
+            for j in np.ndindex(rhs.shape[:-1]):
+                x[j] = np.linalg.lstsq(lhs[j], rhs[j], rcond=None)[0]
+        return x if np.ndim(lam) else x[0]
 
     def heldout(self, terms: Sequence[int], lam: float, stage: bool = False) -> float:
         """Held-out residual sum of squares with the term columns ``terms`` (``stage``:
         on the located stage's rows only)."""
         return float(np.sum(self.heldout_folds(terms, lam, stage)))
 
-    def heldout_folds(self, terms: Sequence[int], lam: float, stage: bool = False) -> np.ndarray:
-        """:meth:`heldout` fold by fold."""
+    def heldout_folds(self, terms: Sequence[int], lam, stage: bool = False) -> np.ndarray:
+        """:meth:`heldout` fold by fold (a leading axis per penalty when ``lam`` is an
+        array)."""
         idx = self._index(terms)
-        total = []
-        for (Mt, bt, Me, be, ee), (Ms, bs, es) in zip(self._grams, self._stage_grams, strict=True):
-            x = self._solve(Mt, bt, idx, lam)
-            if stage:
-                Me, be, ee = Ms, bs, es
-            total.append(ee + 2 * x @ be[idx] + x @ Me[np.ix_(idx, idx)] @ x)
-        return np.asarray(total, float)
+        Mt, bt, Me, be, ee = self._grams
+        if stage:
+            Me, be, ee = self._stage_grams
+        x = self._solve(Mt, bt, idx, lam)
+        Mi = Me[:, idx[:, None], idx[None, :]]
+        return (
+            ee + 2 * np.sum(x * be[:, idx], axis=-1) + np.einsum("...ki,kij,...kj->...k", x, Mi, x)
+        )
 
     def best_heldout(self, terms: Sequence[int]) -> tuple[float, float]:
         """The lowest held-out RSS over the ridge penalties, and its penalty."""
         if not len(terms):
             return self.heldout([], 0.0), 0.0
-        got = [(self.heldout(terms, lam), lam) for lam in RIDGES]
-        return min(got)
+        got = np.sum(self.heldout_folds(terms, np.asarray(RIDGES)), axis=-1)
+        k = int(np.argmin(got))
+        return float(got[k]), RIDGES[k]
 
     def insample(self, terms: Sequence[int], lam: float) -> tuple[float, np.ndarray]:
         """In-sample RSS and the coefficients (stage parameters first) on all rows."""
