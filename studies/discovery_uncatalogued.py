@@ -19,7 +19,7 @@ Scoring (decided before the first run; nothing here set a threshold of the tool)
 * *dependency*: one of the signals the finding depends on is one the planted term
   depends on (:data:`SAME` lists the signals taken as the same: the torque is twice
   mu r_eff times the force, a low-passed history is its signal's: a force history the
-  force's, the low-passed squared current the heat); reported beside it, not
+  force's, as its integral is, the low-passed squared current the heat); reported beside it, not
   as the target (added after the run on seed 20261303, which it reran unchanged
   otherwise): the same, counting also the signals the finding names as ones the trace
   cannot tell from its own (``depends_on_equivalent``);
@@ -77,7 +77,10 @@ PER_NUISANCE = 4
 #: second-order low-pass on a sensor is the catalog's ``sensor_delay`` in its lag form
 #: (``studies/diagnosis_accuracy.py``, ``FORMS``); a supply that drops ``R_s i`` is the
 #: seed model's own resistance ``R + R_s``, which the fit absorbs exactly.
-HELD = {"sensor_lowpass", ("supply_sag", "a")}
+#: ``thrust_bearing_friction`` (the second probe rig's), added after that rig's blind
+#: run: its ``k F tanh(omega/omega0)`` is the catalog's ``wedge_load_torque`` self-locking
+#: form, which its author did not check.
+HELD = {"sensor_lowpass", ("supply_sag", "a"), "thrust_bearing_friction"}
 #: Signals of the tool's findings taken as the planted term's (truth vocabulary).
 SAME: dict[str, set[str]] = {
     "current": {"current", "direction"},
@@ -85,7 +88,7 @@ SAME: dict[str, set[str]] = {
     "angle": {"angle"},
     "x": {"x"},
     "x_rate": {"x_rate"},
-    "force": {"force", "force_history"},
+    "force": {"force", "force_history", "force_integral"},
     "force_rate": {"force_rate", "force"},
     "torque": {"torque", "force"},
     "torque_rate": {"torque_rate", "torque", "force_rate"},

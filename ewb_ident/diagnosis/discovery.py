@@ -443,11 +443,11 @@ LOCAL: dict[str, tuple[str, ...]] = {
 }
 
 
-#: Signals a place's term cannot depend on, by physics: the voltage the driver applies
-#: acts on the motor's electrical equation; the shaft, everything after it and the
-#: sensors see it only through the current, which is an input (a sensor's crosstalk is
-#: the current's; a logged voltage is the driver's mean, not its switching).
-NOT_INPUTS = {p: ("voltage", "voltage_rate") for p in PLACES if p != "motor.electrical"}
+#: Signals a place's term cannot depend on, by physics: the driver's voltage acts in the
+#: motor's circuit (its electrical equation, and the current sensor, which also reads any
+#: path beside the motor); the rest sees it only through the current.
+CIRCUIT = ("motor.electrical", "sensor.current_A")
+NOT_INPUTS = {p: ("voltage", "voltage_rate") for p in PLACES if p not in CIRCUIT}
 
 
 def _is_local(group: str, local: Sequence[str]) -> bool:

@@ -171,13 +171,13 @@ def input_signals(
         if y is None:
             continue
         add(name, channel(ch, True), unit, "level", words, sym)
-        rate = np.gradient(y, dt)
-        add(f"{name}_rate", rate, f"{unit}/s", "signed", rate_words, f"d{sym}/dt")
+        add(f"{name}_rate", np.gradient(y, dt), f"{unit}/s", "signed", rate_words, f"d{sym}/dt")
         if name != "force":
             continue
-        for tau in HISTORY_S:
+        for tau in HISTORY_S:  # its recent history, and its whole (what accumulates with it)
             hist = f"the force low-passed over {tau:g} s (its recent history)"
             add(f"force_history_{tau:g}s", _lowpass(y, dt, tau), "N", "level", hist, f"F̄{tau:g}s")
+        add("force_integral", _integral(y, dt), "N*s", "level", "the force's integral", "∫Fdt")
     if trace.has("disc_speed_rad_s"):
         wd = trace["disc_speed_rad_s"]
         if np.ptp(wd) > 0.02 * max(float(np.max(np.abs(wd))), 1e-9):

@@ -109,6 +109,18 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
         "the torque varies once or twice per disc revolution: disc thickness variation or runout",
     ),
     (
+        "sensor.force_N",
+        "force_integral",
+        "the reading drifts with the integral of the force: a piezoelectric washer's "
+        "charge leaking, or its charge amplifier drifting",
+    ),
+    (
+        "sensor.current_A",
+        "voltage",
+        "the reading includes a path driven by the voltage beside the motor: a snubber "
+        "or the driver's own supply current",
+    ),
+    (
         "sensor.",
         "_rate",
         "the sensor reading lags its own signal: a low-pass filter in its signal conditioning",
