@@ -622,3 +622,38 @@ def test_a_sensor_picking_up_a_fast_signal_takes_it_at_its_own_sample():
     m = re.fullmatch(r"Δtorque_Nm = \+?([0-9.e+-]+)·i \[N\*m\]", cf.learned[0]["equation"])
     assert m, cf.learned[0]["equation"]
     assert float(m.group(1)) == pytest.approx(CROSSTALK_NM_PER_A, rel=0.05)
+
+
+DRIFT_PER_S = 0.02  # a piezo washer's charge amplifier: the reading gains d * integral(F dt)
+
+
+def test_a_force_reading_that_drifts_with_the_force_integral_is_learned_so():
+    """A charge amplifier drifting with the charge it integrates: the force reading is
+    ``F + d ∫F dt``. The drift lifts the open pads' reading into the force range, so the
+    phases flicker into many "applies" of a few samples beside one holding most of the
+    trace; held-out folds are then blocks in time (leaving that apply out would leave
+    nothing to fit the bell on). The term is learned on the force's integral, with the
+    planted coefficient, and no catalog offset is named for it."""
+    trace, run, _ = _clean()
+    F = run.states["force_N"]
+    truth = DRIFT_PER_S * np.concatenate([[0.0], np.cumsum(0.5 * (F[1:] + F[:-1]))]) * trace.dt
+    res = diagnose(_with({"force_N": F + truth}, "drift"))
+    assert res.verdict == "unexplained" and not any(f.catalog for f in res.findings)
+    (top,) = res.findings
+    assert top.place == "sensor.force_N" and top.depends_on == ("force_integral",)
+    (term,) = top.terms
+    assert term["expression"] == "∫Fdt"
+    assert term["coef"] == pytest.approx(DRIFT_PER_S, rel=0.05)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.05 * np.sqrt(np.mean(truth**2))
+    assert top.heldout["method"].startswith("4-fold blocked")
+    assert top.heldout["excess_share"] >= 0.8
+
+
+def test_folds_leave_out_whole_applies_only_when_none_holds_most_of_the_trace():
+    apply = ["gapping"] * 20 + ["clamping"] * 30 + ["release"] * 10
+    idx, method = heldout.folds(np.array(apply * 3 + ["gapping"] * 20))
+    assert method == "leave-one-apply-out over 3 applies" and idx.max() == 2
+    flicker = ["gapping"] * 20 + ["saturation"] * 150 + (["gapping", "saturation"] * 4) * 3
+    idx, method = heldout.folds(np.array(flicker))
+    assert method == "4-fold blocked cross-validation in time"
+    assert np.bincount(idx).min() >= len(flicker) // 4 - 1

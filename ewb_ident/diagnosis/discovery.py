@@ -48,7 +48,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ewb_ident.data.stages import STAGE_OUTPUTS
-from ewb_ident.diagnosis.heldout import HELDOUT_BIC, RIDGES, Design, folds, lag1, white_level
+from ewb_ident.diagnosis.heldout import (
+    HELDOUT_BIC,
+    RIDGES,
+    Design,
+    estimates,
+    folds,
+    form_spread,
+    lag1,
+    linearised_start,
+    white_level,
+)
 from ewb_ident.diagnosis.inputs import (
     KNOTS,
     Column,
@@ -68,7 +78,6 @@ from ewb_ident.diagnosis.places import own_sample_channels, place_effect, place_
 from ewb_ident.diagnosis.session import model_channels
 from ewb_ident.mechanisms.learned import PLACES
 from ewb_ident.model.integrate import motor_fine
-from ewb_ident.model.params import PARAMS, EWBParams
 
 #: ... a learned term must also remove at least this share of the held-out excess over
 #: the noise (beside a held-out score of at most ``-HELDOUT_BIC``).
@@ -514,6 +523,13 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
     )
 
 
+TIE = HELDOUT_BIC / 2  # held-out scores closer than this: the data cannot tell them
+
+
+def _linear(item) -> bool:
+    return all(c.form[:2] == ("pow", 1) for c in item)
+
+
 def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[list[int], float]:
     """Forward selection over the library from the items ``chosen``: items enter by
     held-out residual until the expression keeps :data:`KEEP_SHARE` of the learned
@@ -530,6 +546,9 @@ def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[li
         if not vals:
             break
         best = min(vals)
+        # A law linear in its input where held-out data cannot tell it from the best.
+        near = [v for v in vals if _linear(items[v[1]]) and d.score(best[0], v[0]) < TIE]
+        best = min(near) if near else best
         if cur - best[0] < MIN_STEP_SHARE * max(learned.excess, 1e-300):
             break
         chosen = [*chosen, best[1]]
@@ -582,7 +601,7 @@ def distil(d: Design, items: list[list[Column]], learned: PlaceFit, place: str):
             swap = [*chosen[:pos], j, *chosen[pos + 1 :]]
             c_alt = _item_cols(items, swap)
             val = d.heldout(c_alt, RIDGES[0])
-            if d.score(cur, val, d.rho_after(c_alt, RIDGES[0])) < HELDOUT_BIC / 2:
+            if d.score(cur, val, d.rho_after(c_alt, RIDGES[0])) < TIE:
                 alts.append(d.insample(c_alt, RIDGES[0])[1][: d.kb])
     return fit, chosen_items, coef, step, alts
 
@@ -754,36 +773,6 @@ def keep_generalising(cands: list) -> list:
 #: Places whose held-out gain is at least this share of the best's explain the
 #: mismatch about as well: the trace cannot tell them apart.
 CLOSE = 0.9
-
-
-def estimates(fit, step: np.ndarray, free_only: bool = True) -> dict[str, float]:
-    """The fit's free base parameters (SI) after the linearised step ``step`` (in the
-    fit's optimiser coordinates, its free parameters first); with ``free_only`` False,
-    its held ones too, at their values."""
-    out = {} if free_only else {k: float(v) for k, v in fit.values.items() if k in PARAMS}
-    for j, name in enumerate(fit.problem.shared):
-        if name in PARAMS and j < step.size:
-            dp = float(PARAMS[name].dp_du(float(fit.u[j]))) * float(step[j])
-            out[name] = float(fit.values[name]) + dp
-    return out
-
-
-def linearised_start(fit, step: np.ndarray) -> dict[str, float]:
-    """A start for a term's fit through the model: :func:`estimates`, but a parameter the
-    step takes out of its range (it has no slope there, so the linearisation says
-    nothing about it: an armature's L pinned near zero) at its nominal value."""
-    nominal, out = EWBParams().as_dict(), estimates(fit, step)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bad = [n for n, v in out.items() if not np.isfinite(PARAMS[n].to_unconstrained(v))]
-    return out | {n: nominal.get(n, float(fit.values[n])) for n in bad}
-
-
-def form_spread(best: Mapping[str, float], others: Sequence[Mapping[str, float]]):
-    """Per base parameter, the largest distance of another term's estimate (of the
-    parameters its fit frees) from the chosen term's (free or held at its stages' fit):
-    how much the parameter depends on the term's form and place, which the trace cannot
-    pin down."""
-    return {k: max((abs(o[k] - v) for o in others if k in o), default=0.0) for k, v in best.items()}
 
 
 def _specificity(place: str) -> int:

@@ -1,16 +1,18 @@
 """Held-out evidence for a learned term: folds of a trace (:func:`folds`) and the
 linearised problem at one place solved on some folds and scored on the others
-(:class:`Design`). Used by :mod:`ewb_ident.diagnosis.discovery`.
+(:class:`Design`); the stage's parameters after a linearised step (:func:`estimates`).
+Used by :mod:`ewb_ident.diagnosis.discovery`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ewb_ident.data.metrics import RHO_MAX
+from ewb_ident.model.params import PARAMS, EWBParams
 
 #: A learned term must lower the held-out residual by this much (a dBIC-like score of
 #: the held-out residual sums, with the effective number of residuals, no penalty).
@@ -26,10 +28,17 @@ RIDGES = (1e-4, 1e-2, 1.0)
 # ----------------------------------------------------------------------------- folds
 
 
+#: Largest share of the samples one apply's fold may hold: leaving it out must leave the
+#: others enough of the trace to fit on (else blocks in time are used).
+FOLD_MAX_SHARE = 0.5
+
+
 def folds(labels: np.ndarray) -> tuple[np.ndarray, str]:
     """Fold index of each sample, and the method in words: leave one apply out when the
     trace holds three or more applies (each from the open pads before it to those
-    after), otherwise four contiguous blocks in time."""
+    after) and none holds more than :data:`FOLD_MAX_SHARE` of it, otherwise four
+    contiguous blocks in time (a reading that drifts can make the open pads flicker into
+    many "applies" of a few samples beside one that holds nearly the whole trace)."""
     n = labels.size
     open_ = labels == "gapping"
     starts = [i for i in range(1, n) if open_[i - 1] and not open_[i]]
@@ -39,10 +48,11 @@ def folds(labels: np.ndarray) -> tuple[np.ndarray, str]:
             gaps = np.flatnonzero(open_[a:b])
             cuts.append(a + int(gaps[len(gaps) // 2]) if gaps.size else b)
         cuts.append(n)
-        idx = np.zeros(n, int)
-        for k in range(len(cuts) - 1):
-            idx[cuts[k] : cuts[k + 1]] = k
-        return idx, f"leave-one-apply-out over {len(cuts) - 1} applies"
+        if np.max(np.diff(cuts)) <= FOLD_MAX_SHARE * n:
+            idx = np.zeros(n, int)
+            for k in range(len(cuts) - 1):
+                idx[cuts[k] : cuts[k + 1]] = k
+            return idx, f"leave-one-apply-out over {len(cuts) - 1} applies"
     return np.minimum((np.arange(n) * 4) // n, 3), "4-fold blocked cross-validation in time"
 
 
@@ -212,3 +222,36 @@ def white_level(r: np.ndarray, fold_rows: np.ndarray) -> float:
     d = np.diff(e)
     level = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2)
     return float(np.clip(level, *FLOOR_SCALE))
+
+
+# ----------------------------------------------------------------------------- steps
+
+
+def estimates(fit, step: np.ndarray, free_only: bool = True) -> dict[str, float]:
+    """The fit's free base parameters (SI) after the linearised step ``step`` (in the
+    fit's optimiser coordinates, its free parameters first); with ``free_only`` False,
+    its held ones too, at their values."""
+    out = {} if free_only else {k: float(v) for k, v in fit.values.items() if k in PARAMS}
+    for j, name in enumerate(fit.problem.shared):
+        if name in PARAMS and j < step.size:
+            dp = float(PARAMS[name].dp_du(float(fit.u[j]))) * float(step[j])
+            out[name] = float(fit.values[name]) + dp
+    return out
+
+
+def linearised_start(fit, step: np.ndarray) -> dict[str, float]:
+    """A start for a term's fit through the model: :func:`estimates`, but a parameter the
+    step takes out of its range (it has no slope there, so the linearisation says
+    nothing about it: an armature's L pinned near zero) at its nominal value."""
+    nominal, out = EWBParams().as_dict(), estimates(fit, step)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bad = [n for n, v in out.items() if not np.isfinite(PARAMS[n].to_unconstrained(v))]
+    return out | {n: nominal.get(n, float(fit.values[n])) for n in bad}
+
+
+def form_spread(best: Mapping[str, float], others: Sequence[Mapping[str, float]]):
+    """Per base parameter, the largest distance of another term's estimate (of the
+    parameters its fit frees) from the chosen term's (free or held at its stages' fit):
+    how much the parameter depends on the term's form and place, which the trace cannot
+    pin down."""
+    return {k: max((abs(o[k] - v) for o in others if k in o), default=0.0) for k, v in best.items()}
