@@ -657,3 +657,31 @@ def test_folds_leave_out_whole_applies_only_when_none_holds_most_of_the_trace():
     idx, method = heldout.folds(np.array(flicker))
     assert method == "4-fold blocked cross-validation in time"
     assert np.bincount(idx).min() >= len(flicker) // 4 - 1
+
+
+LEAK_A_PER_V = 0.1  # a current reading that also takes a path across the motor's terminals
+
+
+def test_a_current_reading_that_picks_up_the_voltage_is_learned_at_the_current_sensor():
+    """The current sensor sits in the motor's circuit: a snubber or the driver's own
+    supply current across the terminals adds ``V / R_p`` to its reading. Its term may
+    depend on the voltage (no other sensor's may), and on a 1 kHz trace of voltage steps
+    it is learned there, with the planted conductance."""
+    noise = rig.SensorNoise()
+    settings = SETTINGS | dict(sample_rate_hz=1000.0, seed=9, profile="steps")
+    trace, _, run = rig.simulate_rig(rig.RigParams(), noise=noise, return_clean=True, **settings)
+    truth = LEAK_A_PER_V * trace["voltage_V"]
+    rng = np.random.default_rng(31)
+    ch = dict(trace.channels)
+    ch["current_A"] = (
+        run.states["current_A"] + truth + noise.sigma("current_A") * rng.standard_normal(trace.n)
+    )
+    res = diagnose(dataclasses.replace(trace, channels=ch, name="leak"))
+    assert not any(f.catalog for f in res.findings)
+    (top,) = res.findings
+    assert top.place == "sensor.current_A" and top.depends_on == ("voltage",)
+    (term,) = top.terms
+    assert term["expression"] == "V"
+    assert term["coef"] == pytest.approx(LEAK_A_PER_V, rel=0.1)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.15 * np.sqrt(np.mean(truth**2))
+    assert top.heldout["excess_share"] >= 0.8
