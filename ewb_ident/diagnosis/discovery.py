@@ -51,6 +51,7 @@ from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.heldout import (
     HELDOUT_BIC,
     RIDGES,
+    TIE,
     Design,
     estimates,
     folds,
@@ -523,11 +524,9 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
     )
 
 
-TIE = HELDOUT_BIC / 2  # held-out scores closer than this: the data cannot tell them
-
-
-def _linear(item) -> bool:
-    return all(c.form[:2] == ("pow", 1) for c in item)
+def _linear_in(item, other) -> bool:  # linear in the inputs of ``other`` (only those)
+    ins = {n for c in other for n in inputs_of(c)}
+    return all(c.form[:2] == ("pow", 1) and set(inputs_of(c)) <= ins for c in item)
 
 
 def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[list[int], float]:
@@ -546,9 +545,9 @@ def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[li
         if not vals:
             break
         best = min(vals)
-        # A law linear in its input where held-out data cannot tell it from the best.
-        near = [v for v in vals if _linear(items[v[1]]) and d.score(best[0], v[0]) < TIE]
-        best = min(near) if near else best
+        # A law linear in the best's input where held-out data cannot tell them apart.
+        same = [v for v in vals if _linear_in(items[v[1]], items[best[1]])]
+        best = min([v for v in same if d.score(best[0], v[0]) < TIE] or [best])
         if cur - best[0] < MIN_STEP_SHARE * max(learned.excess, 1e-300):
             break
         chosen = [*chosen, best[1]]

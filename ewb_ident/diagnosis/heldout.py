@@ -17,6 +17,8 @@ from ewb_ident.model.params import PARAMS, EWBParams
 #: A learned term must lower the held-out residual by this much (a dBIC-like score of
 #: the held-out residual sums, with the effective number of residuals, no penalty).
 HELDOUT_BIC = 10.0
+#: Held-out scores closer than this are ones the data cannot tell apart.
+TIE = HELDOUT_BIC / 2
 #: Largest lag-1 correlation used for that effective number: a smooth remainder (a
 #: motor's angle integrates any misfit) would otherwise leave a handful of "independent"
 #: residuals; the held-out folds, not this count, guard against a term fitting noise.
