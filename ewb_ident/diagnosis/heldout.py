@@ -85,23 +85,18 @@ class Design:
     def __post_init__(self):
         A = self._A = np.concatenate([self.J, self.G], axis=1)
         own = np.ones(self.r.size, bool) if self.stage_rows is None else self.stage_rows
-        grams: list[list] = [[] for _ in range(5)]
-        stage: list[list] = [[] for _ in range(3)]
+        grams, stage = [], []
         for k in range(self.n_folds):
             te = self.fold == k
             tr = ~te & (self.fold >= 0)
             At, rt = A[tr], self.r[tr]
             Ae, re = A[te], self.r[te]
+            grams.append((At.T @ At, At.T @ rt, Ae.T @ Ae, Ae.T @ re, re @ re))
             As, rs = A[te & own], self.r[te & own]
-            for lst, v in zip(
-                grams, (At.T @ At, At.T @ rt, Ae.T @ Ae, Ae.T @ re, re @ re), strict=True
-            ):
-                lst.append(v)
-            for lst, v in zip(stage, (As.T @ As, As.T @ rs, rs @ rs), strict=True):
-                lst.append(v)
+            stage.append((As.T @ As, As.T @ rs, rs @ rs))
         # Stacked over the folds (the first axis), for one batched solve per subset.
-        self._grams = [np.asarray(v, float) for v in grams]
-        self._stage_grams = [np.asarray(v, float) for v in stage]
+        self._grams = [np.asarray(v, float) for v in zip(*grams, strict=True)]
+        self._stage_grams = [np.asarray(v, float) for v in zip(*stage, strict=True)]
         self._full = (A.T @ A, A.T @ self.r, float(self.r @ self.r))
 
     @property
