@@ -19,7 +19,9 @@ Scoring (decided before the first run; nothing here set a threshold of the tool)
 * *dependency*: one of the signals the finding depends on is one the planted term
   depends on (:data:`SAME` lists the signals taken as the same: the torque is twice
   mu r_eff times the force, a low-passed history is its signal's: a force history the
-  force's, as its integral is, the low-passed squared current the heat); reported beside it, not
+  force's, as its integral is, the low-passed squared current the heat; the count of the
+  motion's reversals and the travel since one are the direction's, added with those
+  inputs after the second probe's runs); reported beside it, not
   as the target (added after the run on seed 20261303, which it reran unchanged
   otherwise): the same, counting also the signals the finding names as ones the trace
   cannot tell from its own (``depends_on_equivalent``);
@@ -99,6 +101,8 @@ SAME: dict[str, set[str]] = {
     "voltage_rate": {"voltage_rate"},
     "voltage": {"voltage"},
     "disc_angle": {"disc_angle"},
+    "reversals": {"reversals", "direction"},
+    "travel": {"travel", "direction"},
 }
 FIELDS = (
     "case",

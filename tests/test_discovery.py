@@ -662,26 +662,69 @@ def test_folds_leave_out_whole_applies_only_when_none_holds_most_of_the_trace():
 LEAK_A_PER_V = 0.1  # a current reading that also takes a path across the motor's terminals
 
 
+def _sensor_learned(channel: str, error, settings: dict, seed: int):
+    """The one finding, uncatalogued, of a trace whose ``channel`` reads its true value
+    plus ``error(trace, true values)`` and noise; and that error."""
+    noise = rig.SensorNoise()
+    trace, _, run = rig.simulate_rig(rig.RigParams(), noise=noise, return_clean=True, **settings)
+    truth = error(trace, run.states[channel])
+    rng = np.random.default_rng(seed)
+    ch = dict(trace.channels)
+    ch[channel] = run.states[channel] + truth + noise.sigma(channel) * rng.standard_normal(trace.n)
+    res = diagnose(dataclasses.replace(trace, channels=ch, name=channel))
+    assert not any(f.catalog for f in res.findings)
+    (top,) = res.findings
+    return top, truth
+
+
 def test_a_current_reading_that_picks_up_the_voltage_is_learned_at_the_current_sensor():
     """The current sensor sits in the motor's circuit: a snubber or the driver's own
     supply current across the terminals adds ``V / R_p`` to its reading. Its term may
     depend on the voltage (no other sensor's may), and on a 1 kHz trace of voltage steps
     it is learned there, with the planted conductance."""
-    noise = rig.SensorNoise()
     settings = SETTINGS | dict(sample_rate_hz=1000.0, seed=9, profile="steps")
-    trace, _, run = rig.simulate_rig(rig.RigParams(), noise=noise, return_clean=True, **settings)
-    truth = LEAK_A_PER_V * trace["voltage_V"]
-    rng = np.random.default_rng(31)
-    ch = dict(trace.channels)
-    ch["current_A"] = (
-        run.states["current_A"] + truth + noise.sigma("current_A") * rng.standard_normal(trace.n)
+    top, truth = _sensor_learned(
+        "current_A", lambda tr, _: LEAK_A_PER_V * tr["voltage_V"], settings, 31
     )
-    res = diagnose(dataclasses.replace(trace, channels=ch, name="leak"))
-    assert not any(f.catalog for f in res.findings)
-    (top,) = res.findings
     assert top.place == "sensor.current_A" and top.depends_on == ("voltage",)
     (term,) = top.terms
     assert term["expression"] == "V"
     assert term["coef"] == pytest.approx(LEAK_A_PER_V, rel=0.1)
     assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.15 * np.sqrt(np.mean(truth**2))
+    assert top.heldout["excess_share"] >= 0.8
+
+
+def test_reversals_count_from_each_extreme_and_ignore_a_dither_at_rest():
+    from ewb_ident.diagnosis.filters import reversals
+
+    t = np.arange(0.0, 2.0, 1e-3)
+    y = 100.0 * np.sin(2 * np.pi * t) + 0.2 * np.sin(2 * np.pi * 40.0 * t)  # a 0.2 deg dither
+    count, travel = reversals(y, 0.01)
+    peaks = np.flatnonzero(np.diff(count)) + 1  # where each count starts
+    assert count[-1] == 4 and count[0] == 0  # the four extremes of two periods
+    assert np.all(np.abs(np.abs(y[peaks - 1]) - np.max(np.abs(y))) < 0.5)  # at the extremes
+    assert travel[0] == 0 and travel[peaks[0]] == pytest.approx(y[peaks[0]] - y[peaks[0] - 1])
+    rest = np.concatenate([np.linspace(0, 50, 200), 50 + 0.2 * np.sin(np.arange(400.0))])
+    assert reversals(rest, 0.01)[0].max() == 0  # a dither at rest under 1 % of the range
+
+
+SLIP_DEG = 0.3  # an encoder coupling that slips at each reversal of the motion
+
+
+def test_an_encoder_that_slips_at_each_reversal_is_learned_on_the_reversal_count():
+    """The angle reading loses ``SLIP_DEG`` at every reversal of the motion (its
+    coupling slips): a sensor term that steps at events, not a function of any level.
+    On a staircase with eleven reversals it is learned at the angle sensor on the count
+    of reversals, with the planted step, and no catalog mechanism is named."""
+    from ewb_ident.diagnosis.filters import reversals
+
+    def slip(_, th):
+        return -SLIP_DEG * reversals(th, 0.01)[0]
+
+    top, _ = _sensor_learned("theta_deg", slip, SETTINGS | dict(profile="staircase"), 17)
+    assert top.place == "sensor.theta_deg" and top.depends_on == ("reversals",)
+    (term,) = top.terms
+    assert term["expression"] == "n_rev"
+    assert term["coef"] == pytest.approx(-SLIP_DEG, rel=0.05)
+    assert "slipping" in top.reading
     assert top.heldout["excess_share"] >= 0.8

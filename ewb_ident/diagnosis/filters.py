@@ -1,5 +1,6 @@
-"""Two filters of :mod:`scipy.signal` that discovery uses, computed as SciPy computes
-them, without importing ``scipy.signal``.
+"""Filters of a series that discovery uses: two of :mod:`scipy.signal`'s, computed as
+SciPy computes them, without importing ``scipy.signal``, and a counter of the motion's
+reversals (:func:`reversals`).
 
 Importing ``scipy.signal`` imports ``scipy.stats``, ``scipy.optimize``,
 ``scipy.interpolate`` and ``scipy.spatial`` with it: about 1 s of processor time at
@@ -81,3 +82,45 @@ def fft_convolve_columns(h: np.ndarray, U: np.ndarray) -> np.ndarray:
     sp2 = sp_fft.rfftn(in2, fshape, axes=[0])
     ret = sp_fft.irfftn(sp1 * sp2, fshape, axes=[0])
     return np.array(ret[(slice(full), slice(max(in1.shape[1], in2.shape[1])))])
+
+
+def reversals(y: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
+    """The reversals of a motion so far, and the travel since the last one.
+
+    A reversal is an extreme of ``y`` from which it comes back by more than ``share`` of
+    its range (a Schmitt trigger: the dither of a closed loop at rest is none); it counts
+    from the sample after the extreme. The first departure from the start sets the
+    direction and is not counted.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        The position (1-D), e.g. the pinion angle in degrees.
+    share : float
+        The hysteresis, as a share of ``y``'s range.
+
+    Returns
+    -------
+    count : numpy.ndarray
+        The number of reversals before each sample.
+    travel : numpy.ndarray
+        ``y`` less its value at the last reversal (before the first: at the start), in
+        ``y``'s unit.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    vals = y.tolist()
+    h = share * float(np.ptp(y)) if y.size else 0.0
+    events: list[int] = []
+    direction, ext = 0, 0
+    for k, v in enumerate(vals):
+        if direction == 0:
+            if abs(v - vals[0]) > h:
+                direction, ext = (1 if v > vals[0] else -1), k
+        elif (v - vals[ext]) * direction > 0:
+            ext = k
+        elif (vals[ext] - v) * direction > h:
+            events.append(ext)
+            direction, ext = -direction, k
+    count = np.searchsorted(np.array(events, dtype=int), np.arange(y.size), side="left")
+    anchor = y[np.array(events, dtype=int)[np.maximum(count - 1, 0)]] if events else y[:1]
+    return count.astype(np.float64), y - np.where(count > 0, anchor, y[:1])

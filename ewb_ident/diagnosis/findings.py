@@ -316,8 +316,10 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
 
 
 def _source(signal: str) -> str:
-    """The channel a signal is computed from (the heat and its histories: the current)."""
+    """The channel a signal is computed from (the heat and its histories: the current;
+    the reversals and the travel since one: the angle)."""
     name = "current" if signal.startswith("heat") else signal.removesuffix("_rate")
+    name = "angle" if name in ("reversals", "travel") else name
     return {v: k for k, v in OWN_SIGNAL.items()}.get(name, "")
 
 

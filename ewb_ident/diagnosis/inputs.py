@@ -12,12 +12,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ewb_ident.diagnosis.filters import first_order_lowpass
+from ewb_ident.diagnosis.filters import first_order_lowpass, reversals
 from ewb_ident.diagnosis.locate import disc_angle
 from ewb_ident.model.physics import DEG_PER_RAD
 
 #: Time constants of the low-passed histories, s.
 HISTORY_S = (0.1, 0.5, 2.0)
+#: A reversal of the motion: the angle back from its last extreme by this share of its range.
+REVERSAL_SHARE = 0.01
 
 #: The signal named after each channel (a sensor's own signal).
 OWN_SIGNAL = {
@@ -142,6 +144,10 @@ def input_signals(
         omega = np.gradient(th, dt) / DEG_PER_RAD
         add("angle", channel("theta_deg", True), "deg", "angle", "the pinion angle", "θ")
         add("speed", omega, "rad/s", "signed", "the motor speed", "ω")
+        # What steps at each reversal (a slip, a loss per stroke); what restarts (hysteresis).
+        count, travel = reversals(th, REVERSAL_SHARE)
+        add("reversals", count, "1", "level", "the reversals of the motion so far", "n_rev")
+        add("travel", travel, "deg", "signed", "the angle travelled since a reversal", "θ_rev")
     cur = channel("current_A")
     if fine is not None and "current" in fine:
         cur = np.asarray(fine["current"])[:, 0]
@@ -188,14 +194,8 @@ def input_signals(
         phi = np.mod(disc_angle(trace), 2 * np.pi)
         add("disc_angle", phi, "rad", "phase", "the disc angle", "φ_d")
         if "torque" in out:
-            add(
-                "energy",
-                _integral(np.abs(out["torque"].values * wd), dt),
-                "J",
-                "level",
-                "the braking energy dissipated",
-                "E",
-            )
+            energy = _integral(np.abs(out["torque"].values * wd), dt)
+            add("energy", energy, "J", "level", "the braking energy dissipated", "E")
     return out
 
 

@@ -121,6 +121,23 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
         "or the driver's own supply current",
     ),
     (
+        "sensor.theta_deg",
+        "reversals",
+        "the reading loses a step at each reversal of the motion: the encoder or its "
+        "coupling slipping",
+    ),
+    (
+        "",
+        "reversals",
+        "a change that steps at each reversal of the motion: a slip, or a loss or wear per stroke",
+    ),
+    (
+        "",
+        "travel",
+        "a term that restarts at each reversal of the motion: hysteresis (a play, "
+        "pre-sliding friction, a contact that sticks before it slides)",
+    ),
+    (
         "sensor.",
         "_rate",
         "the sensor reading lags its own signal: a low-pass filter in its signal conditioning",
