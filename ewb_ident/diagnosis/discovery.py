@@ -94,9 +94,10 @@ KEEP_SHARE = 0.9
 #: is smaller than this share of it is left out (the parameters make it already).
 MIN_NEW_SHARE = 0.05
 #: Places in order of specificity: among places whose term removes at least
-#: :data:`PLACE_TIE` of the best place's held-out gain, the first is chosen (a term
-#: inside the physics before a sensor's, a sensor's before an added output), unless a
-#: close place's distilled term keeps clearly more (:func:`discover`).
+#: :data:`PLACE_TIE` of the best place's held-out gain, one whose term also explains
+#: another stage (:attr:`PlaceFit.spans`: one term for both) and then the first is chosen
+#: (a term inside the physics before a sensor's, a sensor's before an added output),
+#: unless a close place's distilled term keeps clearly more (:func:`discover`).
 PLACE_ORDER = ("motor.", "gap", "drive", "force.input", "friction", "sensor.",
                "force.output", "torque.output")  # fmt: skip
 PLACE_TIE = 0.95
@@ -137,10 +138,15 @@ class PlaceFit:
         clearly too (by ``2 HELDOUT_BIC`` and a tenth of the located stage's gain): a
         sensor's error shows downstream, a term of the physics does not."""
         total = self.heldout_before - self.heldout_after
-        other = total - self.stage_gain
-        if other > max(2 * HELDOUT_BIC, 0.1 * self.stage_gain):
+        if total - self.stage_gain > max(2 * HELDOUT_BIC, 0.1 * self.stage_gain):
             return total
         return min(total, self.stage_gain)
+
+    @property
+    def spans(self) -> bool:
+        """Whether the term also improves another stage's held-out data clearly (by
+        ``2 HELDOUT_BIC``): one term for the mismatch of two stages."""
+        return self.heldout_before - self.heldout_after - self.stage_gain > 2 * HELDOUT_BIC
 
     @property
     def share(self) -> float:
@@ -411,8 +417,7 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
 
     # Frequencies (cycles per degree): spaced by half a cycle over the span, or
     # geometrically when that would take more than SCAN_PERIODS.
-    f_lo, f_hi = 1.0 / hi, 1.0 / lo
-    df = 0.5 / span
+    f_lo, f_hi, df = 1.0 / hi, 1.0 / lo, 0.5 / span
     if (f_hi - f_lo) / df + 1 <= SCAN_PERIODS:
         freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
     else:
@@ -424,8 +429,7 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
     peaks = inner[(g[inner] >= g[inner - 1]) & (g[inner] >= g[inner + 1])]
     out = []
     for k in sorted(peaks, key=lambda k: -g[k])[:most]:
-        left, right = freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)]
-        fine = np.linspace(left, right, 9)
+        fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
         gf = gains(1.0 / fine)
         out.append(float(1.0 / fine[int(np.argmax(gf))]))
     return out
@@ -470,9 +474,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
     base_ho, _ = d.best_heldout([])
     base_in, _ = d.insample([], 0.0)
     excess = max(base_ho - d.noise_rows, 0.0)
-    chosen: list[str] = []
-    ties: list[str] = []
-    cur = base_ho
+    chosen, ties, cur = [], [], base_ho  # input groups chosen, groups tied with one; residual
     usable = [g for g in groups if _column_index(d, groups, {g})]
     own = sensor_signal(place)
     local = (own, f"{own}_rate") if own else LOCAL.get(place, ())
@@ -689,14 +691,13 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         [x for x in results if x[0].groups and x[0].rank_gain >= PLACE_TIE * best_gain]
     )
     if close:
-        results.remove(min(close, key=lambda x: _specificity(x[0].place)))
-        results.insert(0, min(close, key=lambda x: _specificity(x[0].place)))
+        first = min(close, key=lambda x: (not x[0].spans, _specificity(x[0].place)))
+        results.insert(0, results.pop(results.index(first)))
     pf, d, groups, sig, stages, (model, raw) = results[0]
     if not pf.groups:
         places = tuple(r[0] for r in results)
-        return Discovery(
-            stage, pf.place, stages, pf, pf, (), (), method, places, sig, model, raw=raw
-        )
+        return Discovery(stage, pf.place, stages, pf, pf, (), (), method, places, sig, model,
+                         raw=raw)  # fmt: skip
 
     def distilled(pf, sig, stages, knots=(0.5,)):
         items = library(sig, pf.groups, knots)
@@ -731,11 +732,10 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
     kept = cands[next(i for i, g in enumerate(kept_gain) if g >= PLACE_TIE * max(kept_gain))]
     if kept is not results[0]:
-        results.remove(kept)
-        results.insert(0, kept)
+        results.insert(0, results.pop(results.index(kept)))
         pf, d, groups, sig, stages, (model, raw) = kept
     dfit, chosen, x, fit, step, others, (dl, items) = distilled_at(kept)
-    others = list(others)
+    others = list(others)  # (a copy: ``done`` keeps the original)
     fallbacks = fallback_expressions(dl, items, pf, dfit, fit)
     best = estimates(fit, step, free_only=False)
     # Other estimates of the stage's parameters: the distilled forms about as good on
