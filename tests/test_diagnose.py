@@ -439,6 +439,26 @@ def test_a_coarsely_rounded_channel_is_judged_on_its_rounding_error():
     assert not coarsely_rounded(true)
 
 
+def test_a_moving_channel_on_a_coarse_grid_is_judged_rounded_on_its_residual():
+    """At 100 Hz an angle's own motion fills its second differences, so its noise read
+    from the channel is several times the true one and a 12-bit grid looked fine
+    against it; the channel less the model shows the true noise, and the grid as coarse.
+    (A clean 100 Hz trace of the uncatalogued rig with a 12-bit angle, seed 20261350, was
+    reported unexplained at the motor stage at 1.3x the noise.)"""
+    from ewb_ident.diagnosis.locate import coarsely_rounded
+
+    q = 1000.0 / 4096  # a 12-bit angle over 1000 deg
+    t = np.arange(300) * 0.01
+    true = 200.0 * (1.0 - np.cos(2 * np.pi * t / 1.5))
+    measured = q * np.round((true + 0.036 * np.random.default_rng(3).standard_normal(t.size)) / q)
+    assert not coarsely_rounded(measured)
+    assert coarsely_rounded(measured, measured - true)
+    fine = (
+        q / 8 * np.round((true + 0.5 * np.random.default_rng(4).standard_normal(t.size)) / (q / 8))
+    )
+    assert not coarsely_rounded(fine, fine - true)  # noise well over its grid
+
+
 @pytest.mark.slow
 def test_two_effects_that_show_in_the_chain_only_together_are_both_named():
     """Case 7 of the widened accuracy study's seed 20261227 (hysteresis and backlash, no

@@ -319,12 +319,10 @@ class Session:
         out = []
         for ch in STAGE_OUTPUTS[stage]:
             if ch in f.predictions[0] and ch in self.sigma_tf:
+                y, pred = self.trace[ch], f.predictions[0][ch]
                 rounded = inp in self.rounded or ch in self.rounded
-                out.append(
-                    StageCheck(
-                        stage, ch, self.trace[ch], f.predictions[0][ch], self.sigma_tf[ch], rounded
-                    )
-                )
+                rounded = rounded or coarsely_rounded(y, y - np.asarray(pred))
+                out.append(StageCheck(stage, ch, y, pred, self.sigma_tf[ch], rounded))
         return out
 
     def mechanism_stages(self, m: AbstractMechanism) -> tuple[str, ...]:
