@@ -138,7 +138,7 @@ class PlaceFit:
         clearly too (by ``2 HELDOUT_BIC`` and a tenth of the located stage's gain): a
         sensor's error shows downstream, a term of the physics does not."""
         total = self.heldout_before - self.heldout_after
-        if total - self.stage_gain > max(2 * HELDOUT_BIC, 0.1 * self.stage_gain):
+        if self.spans and total - self.stage_gain > 0.1 * self.stage_gain:
             return total
         return min(total, self.stage_gain)
 

@@ -121,6 +121,6 @@ def reversals(y: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
         elif (vals[ext] - v) * direction > h:
             events.append(ext)
             direction, ext = -direction, k
-    count = np.searchsorted(np.array(events, dtype=int), np.arange(y.size), side="left")
-    anchor = y[np.array(events, dtype=int)[np.maximum(count - 1, 0)]] if events else y[:1]
-    return count.astype(np.float64), y - np.where(count > 0, anchor, y[:1])
+    anchors = np.array([0, *events], dtype=int)  # the start, then each reversal's extreme
+    count = np.searchsorted(anchors[1:], np.arange(y.size), side="left")
+    return count.astype(np.float64), y - y[anchors[count]]
