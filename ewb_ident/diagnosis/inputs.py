@@ -79,6 +79,25 @@ def leave_one_out(y: np.ndarray, half: int) -> np.ndarray:
     return (c[hi] - c[lo] - y) / np.maximum(count, 1)
 
 
+#: Longest half-window of a channel's leave-one-out average, s.
+MAX_HALF_S = 0.05
+
+
+def denoised(y: np.ndarray, dt: float) -> np.ndarray:
+    """A recorded channel's level without its noise at each sample: the
+    :func:`leave_one_out` average whose half-width (1 sample to :data:`MAX_HALF_S`)
+    predicts the channel's samples best. For white noise that prediction's error is the
+    noise plus the average's own error, so the best predictor is the best estimate of
+    the level: a wide window where the noise is large against how fast the channel
+    moves (a load cell's noise, which otherwise blurs a term that depends on the force
+    into one on the quieter angle), a narrow one where it moves fast."""
+    y = np.asarray(y, float)
+    top = max(1, int(MAX_HALF_S / dt))
+    halves = sorted({max(1, round(h)) for h in np.geomspace(1, top, 8)})
+    fits = [leave_one_out(y, h) for h in halves]
+    return fits[int(np.argmin([np.mean((y - f) ** 2) for f in fits]))]
+
+
 def input_signals(
     trace,
     model: Mapping[str, np.ndarray],
@@ -87,9 +106,10 @@ def input_signals(
 ) -> dict[str, Signal]:
     """Every signal a learned term may depend on, from the trace and the model.
 
-    Recorded channels enter through :func:`leave_one_out` (their noise at a sample is
-    not in the input there), rates as central differences of that; the channels in
-    ``model`` enter as the model gives them.
+    Recorded channels enter without their noise at a sample (a term cannot fit the
+    residual's noise through its input): levels through :func:`denoised`, rates and
+    histories from the 5 ms :func:`leave_one_out` average; the channels in ``model``
+    enter as the model gives them.
 
     Parameters
     ----------
@@ -126,12 +146,14 @@ def input_signals(
             ref = max(ref, float(np.max(np.abs(within))))
         out[name] = Signal(name, v, unit, kind, words, symbol, ref, within)
 
-    def channel(ch, own_sample=False):  # (the level of a channel in ``raw``: as recorded)
+    def channel(ch, level=False):  # a level: as recorded in ``raw``, else :func:`denoised`
         if ch in model:
             return np.asarray(model[ch], float)[:n]
-        if trace.has(ch):
-            return trace[ch] if own_sample and ch in raw else leave_one_out(trace[ch], half)
-        return None
+        if not trace.has(ch):
+            return None
+        if not level:  # (its rate and history: the 5 ms average's)
+            return leave_one_out(trace[ch], half)
+        return trace[ch] if ch in raw else denoised(trace[ch], dt)
 
     t = trace.time_s - trace.time_s[0]
     add("time", t, "s", "level", "elapsed time", "t")

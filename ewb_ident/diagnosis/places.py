@@ -13,6 +13,7 @@ import numpy as np
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
 from ewb_ident.diagnosis.filters import fft_convolve_columns
+from ewb_ident.diagnosis.inputs import denoised
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
@@ -66,9 +67,12 @@ def place_effect(place: str, values: Mapping[str, float], trace) -> dict[str, An
         g = np.asarray(g, float)[:n]
         return lambda U: g[:, None] * U
 
-    th = trace["theta_deg"] if trace.has("theta_deg") else None
-    x = trace["x_m"] if trace.has("x_m") else None
-    F = trace["force_N"] if trace.has("force_N") else None
+    # The slopes at the recorded levels without their noise at each sample: a term's
+    # change scaled by the recorded force would carry that sample's force noise, which
+    # the residual of a stage fitted on the recorded force carries too (a term would
+    # fit that noise's attenuation of the fit, held-out data alike).
+    level = {ch: denoised(trace[ch], dt) for ch in ("theta_deg", "x_m", "force_N") if trace.has(ch)}
+    th, x, F = level.get("theta_deg"), level.get("x_m"), level.get("force_N")
     slope_th = None if th is None else 2 * values["p2"] * th + values["p1"]
     slope_x = None if x is None else _bell_slope(x, values)
     gain_F = 2 * values["mu"] * trace.r_eff_m

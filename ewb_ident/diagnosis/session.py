@@ -21,7 +21,7 @@ from ewb_ident.data.stages import (
     TEACHER_FORCED,
 )
 from ewb_ident.data.trace import InputError, Trace
-from ewb_ident.diagnosis.inputs import leave_one_out
+from ewb_ident.diagnosis.inputs import denoised
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
@@ -461,7 +461,6 @@ def model_channels(ses, fit) -> dict[str, np.ndarray]:
 
     v = dict(ses.values) | dict(fit.values)
     tr = ses.trace
-    half = max(1, round(0.005 / tr.dt))
     law = {  # each static stage's output from its input
         "gap": lambda y: gap(y, v["p2"], v["p1"], v["p0"]),
         "force": lambda y: clamp_force(y, v["F_rt"], v["a"], v["b"], v["c"]),
@@ -474,11 +473,11 @@ def model_channels(ses, fit) -> dict[str, np.ndarray]:
             if ch in fit.predictions[0]:
                 out[ch] = np.asarray(fit.predictions[0][ch], float)
     # A teacher-forced stage's prediction carries its measured input's noise, which is
-    # in the residual too: the stage is evaluated at the input's leave-one-out average,
-    # or at the model's where an earlier stage of the fit predicts it.
+    # in the residual too: the stage is evaluated at the input's level without its noise
+    # at each sample, or at the model's where an earlier stage of the fit predicts it.
     for st in static:
         if st.name in fit.stages:
-            y = out[st.input] if st.input in out else leave_one_out(tr[st.input], half)
+            y = out[st.input] if st.input in out else denoised(tr[st.input], tr.dt)
             out[st.outputs[0]] = np.asarray(law[st.name](y))
     for st in static:  # and what follows along the chain from the model's channels
         if st.input in out and st.outputs[0] not in out:
