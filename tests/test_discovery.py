@@ -728,3 +728,44 @@ def test_an_encoder_that_slips_at_each_reversal_is_learned_on_the_reversal_count
     assert term["coef"] == pytest.approx(-SLIP_DEG, rel=0.05)
     assert "slipping" in top.reading
     assert top.heldout["excess_share"] >= 0.8
+
+
+def test_the_denoised_level_is_closer_to_the_truth_than_a_fixed_window():
+    """A channel's level without its noise at each sample: the leave-one-out average
+    whose width predicts the samples best, which widens with the noise and never takes
+    the sample's own noise."""
+    t = np.arange(0.0, 3.0, 1e-3)
+    true = 1000.0 * np.clip(np.sin(2 * np.pi * 0.7 * t), 0, None) ** 2
+    rng = np.random.default_rng(3)
+    for sigma in (5.0, 40.0):
+        y = true + sigma * rng.standard_normal(t.size)
+        best = inputs.denoised(y, 1e-3)
+        fixed = inputs.leave_one_out(y, 5)
+        assert np.sqrt(np.mean((best - true) ** 2)) < np.sqrt(np.mean((fixed - true) ** 2))
+    y[1000] += 1e4  # one sample's noise is not in its own level
+    assert abs(inputs.denoised(y, 1e-3)[1000] - true[1000]) < 100.0
+
+
+def test_a_friction_law_in_the_force_is_learned_on_the_force_when_its_reading_is_noisy():
+    """mu falls with the clamping force, and the load cell is three times noisier than
+    the torque sensor reads it (a 1 kHz trace of voltage steps). The friction term's
+    change is the torque of the recorded force: scaled by the recorded force itself, it
+    would carry the force's noise at each sample, which the torque stage's residual
+    carries too, and a term on the quieter angle fitted that noise's attenuation on
+    held-out data as well. It is learned on the force, with the planted slope."""
+    settings = SETTINGS | dict(sample_rate_hz=1000.0, seed=12, profile="steps")
+    noise = rig.SensorNoise()
+    trace, _, run = rig.simulate_rig(rig.RigParams(), noise=noise, return_clean=True, **settings)
+    rng = np.random.default_rng(23)
+    F = run.states["force_N"]
+    ch = dict(trace.channels)
+    ch["force_N"] = F + 3 * noise.sigma("force_N") * rng.standard_normal(trace.n)
+    T = run.states["torque_Nm"] * (1 - PRESSURE_K * F / 3500.0)
+    ch["torque_Nm"] = T + noise.sigma("torque_Nm") * rng.standard_normal(trace.n)
+    res = diagnose(dataclasses.replace(trace, channels=ch, name="mu_F_noisy"))
+    assert not any(f.catalog for f in res.findings)
+    (top,) = res.findings
+    assert top.place == "friction" and top.depends_on == ("force",)
+    (term,) = top.terms
+    assert term["expression"] == "F"
+    assert term["coef"] == pytest.approx(-PRESSURE_K / 3500.0, rel=0.25)

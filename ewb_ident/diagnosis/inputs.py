@@ -160,7 +160,10 @@ def input_signals(
     if trace.has("voltage_V"):
         V = trace["voltage_V"]
         add("voltage", V, "V", "signed", "the motor voltage", "V")
-        add("voltage_rate", np.gradient(V, dt), "V/s", "signed", "the voltage's rate", "dV/dt")
+        # The logged voltage is held over each interval: its rate is its step at the
+        # interval's start (a central difference would act before the step).
+        rate = np.diff(V, prepend=V[0]) / dt
+        add("voltage_rate", rate, "V/s", "signed", "the voltage's rate", "dV/dt")
     th = channel("theta_deg")
     if th is not None:
         omega = np.gradient(th, dt) / DEG_PER_RAD
