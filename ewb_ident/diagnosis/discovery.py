@@ -160,8 +160,7 @@ class PlaceFit:
 
     @property
     def generalises(self) -> bool:
-        """Held-out score and share beyond their thresholds, and consistent over the
-        folds (:meth:`Design.consistent`)."""
+        """Held-out score and share past their thresholds, consistent over the folds."""
         return not self.why_not
 
     @property
@@ -169,9 +168,8 @@ class PlaceFit:
         """Why the term does not generalise, in words (``""``: it does)."""
         if self.folds_improved < self.n_folds:
             return (
-                f"it behaves as physics in only {self.folds_improved} of the {self.n_folds} "
-                "held-out folds (lowering each fold that shows the mismatch, not raising "
-                "the others)"
+                f"it behaves as physics in only {self.folds_improved} of the {self.n_folds} held-"
+                "out folds (lowering each fold that shows the mismatch, not raising the others)"
             )
         if self.share < MIN_HELDOUT_SHARE:
             return (
@@ -184,8 +182,7 @@ class PlaceFit:
 
 
 def group_signals(groups: Sequence[str]) -> list[str]:
-    """The signals of input groups (``"current*heat"``, ``"angle@60"``: current, heat,
-    angle)."""
+    """The signals of input groups (``"current*heat"``, ``"angle@60"``: i, heat, angle)."""
     return [n for g in groups for n in g.partition("@")[0].split("*") if n != "constant"]
 
 
@@ -444,7 +441,8 @@ def _column_index(d: Design, groups: Mapping[str, list[Column]], names) -> list[
     return idx
 
 
-#: Signals local to a place (its own quantities): preferred among near-equal inputs.
+#: Signals local to a place (its quantities and their histories; a rate only where listed,
+#: as the voltage's edges are no state of the circuit): preferred among near-equal inputs.
 LOCAL: dict[str, tuple[str, ...]] = {
     "motor.electrical": ("current", "voltage", "heat", "speed"),
     "motor.mechanical": ("speed", "current", "angle"),
@@ -457,15 +455,17 @@ LOCAL: dict[str, tuple[str, ...]] = {
 }
 
 
-#: Signals a place's term cannot depend on, by physics: the driver's voltage acts in the
-#: motor's circuit (its electrical equation, and the current sensor, which also reads any
-#: path beside the motor); the rest sees it only through the current.
+#: Signals a place's term cannot depend on: the driver's voltage acts in the motor's
+#: circuit (its electrical equation, and the current sensor, which reads any path beside
+#: the motor); the rest sees it only through the current.
 CIRCUIT = ("motor.electrical", "sensor.current_A")
 NOT_INPUTS = {p: ("voltage", "voltage_rate") for p in PLACES if p not in CIRCUIT}
 
 
 def _is_local(group: str, local: Sequence[str]) -> bool:
     name = group.partition("@")[0]
+    if name.endswith("_rate"):
+        return name in local
     return any(name == s or name.startswith(s + "_") for s in local if s)
 
 
