@@ -19,7 +19,7 @@ import pytest
 from ewb_ident import rig
 from ewb_ident.data.outputs import json_text
 from ewb_ident.diagnosis import discovery as disc_mod
-from ewb_ident.diagnosis import heldout, inputs, places
+from ewb_ident.diagnosis import filters, heldout, inputs, places
 from ewb_ident.diagnosis.diagnose import diagnose
 
 SETTINGS = dict(seed=5, sample_rate_hz=200.0, duration_s=3.0, profile="position")
@@ -184,11 +184,13 @@ def test_the_distilled_equation_has_the_planted_form():
     assert term["coef"] == pytest.approx(truth, rel=0.05)
     assert "pad pressure" in top.explanation  # the reading of a known signature
     # One apply: the torque rises with the force, so the trace cannot tell them apart,
-    # and the finding says so; a torque added at the output as a function of the piston
-    # (monotone in the force along the apply) explains it about as well, and the
-    # finding names it with its input (the damper's piston speed has no such twin).
-    assert {"torque", "x"} <= set(top.equivalents)
-    assert "which move with it here: the trace cannot tell" in top.explanation
+    # and the finding says so; a torque added at the output as a function of the torque
+    # explains it about as well, and the finding names it with its input (the damper's
+    # piston speed has no such twin). The piston is no twin: its term fitted the force
+    # noise the torque's residual carries only while the friction's change was scaled
+    # by the recorded force.
+    assert "torque" in top.equivalents and "x" not in top.equivalents
+    assert "which moves with it here: the trace cannot tell" in top.explanation
     assert "the brake torque" in top.explanation.split("(or on ")[1].split(")")[0]
     assert "Terms at torque.output (on the " in top.explanation
     doc = json.loads(json_text(res.to_json()))
@@ -739,11 +741,11 @@ def test_the_denoised_level_is_closer_to_the_truth_than_a_fixed_window():
     rng = np.random.default_rng(3)
     for sigma in (5.0, 40.0):
         y = true + sigma * rng.standard_normal(t.size)
-        best = inputs.denoised(y, 1e-3)
-        fixed = inputs.leave_one_out(y, 5)
+        best = filters.denoised(y, 1e-3)
+        fixed = filters.leave_one_out(y, 5)
         assert np.sqrt(np.mean((best - true) ** 2)) < np.sqrt(np.mean((fixed - true) ** 2))
     y[1000] += 1e4  # one sample's noise is not in its own level
-    assert abs(inputs.denoised(y, 1e-3)[1000] - true[1000]) < 100.0
+    assert abs(filters.denoised(y, 1e-3)[1000] - true[1000]) < 100.0
 
 
 def test_a_friction_law_in_the_force_is_learned_on_the_force_when_its_reading_is_noisy():

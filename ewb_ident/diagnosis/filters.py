@@ -7,7 +7,9 @@ Importing ``scipy.signal`` imports ``scipy.stats``, ``scipy.optimize``,
 every ``ewb-ident diagnose``, which uses none of them. Each function here does the same
 floating-point operations in the same order as its SciPy counterpart, so its results
 are SciPy's (bit for bit with SciPy 1.17; ``tests/test_discovery.py`` checks both
-against the installed SciPy's to rounding).
+against the installed SciPy's to rounding). And the leave-one-out averages that take a
+recorded channel's noise at a sample out of its level there (:func:`leave_one_out`,
+:func:`denoised`).
 """
 
 from __future__ import annotations
@@ -124,3 +126,37 @@ def reversals(y: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
     anchors = np.array([0, *events], dtype=int)  # the start, then each reversal's extreme
     count = np.searchsorted(anchors[1:], np.arange(y.size), side="left")
     return count.astype(np.float64), y - y[anchors[count]]
+
+
+def leave_one_out(y: np.ndarray, half: int) -> np.ndarray:
+    """Centred moving average over ``2 half`` neighbours, the sample itself left out
+    (ends: the neighbours there are). A recorded channel's noise at a sample is then
+    not in the input at that sample, so a term cannot fit the residual's noise through
+    its input; the central differences of the result hold no noise of their own sample
+    either (it enters both neighbours equally)."""
+    y = np.asarray(y, float)
+    n = y.size
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    k = np.arange(n)
+    lo, hi = np.maximum(k - half, 0), np.minimum(k + half + 1, n)
+    count = hi - lo - 1
+    return (c[hi] - c[lo] - y) / np.maximum(count, 1)
+
+
+#: Longest half-window of a channel's leave-one-out average, s.
+MAX_HALF_S = 0.05
+
+
+def denoised(y: np.ndarray, dt: float) -> np.ndarray:
+    """A recorded channel's level without its noise at each sample: the
+    :func:`leave_one_out` average whose half-width (1 sample to :data:`MAX_HALF_S`)
+    predicts the channel's samples best. For white noise that prediction's error is the
+    noise plus the average's own error, so the best predictor is the best estimate of
+    the level: a wide window where the noise is large against how fast the channel
+    moves (a load cell's noise, which otherwise blurs a term that depends on the force
+    into one on the quieter angle), a narrow one where it moves fast."""
+    y = np.asarray(y, float)
+    top = max(1, int(MAX_HALF_S / dt))
+    halves = sorted({max(1, round(h)) for h in np.geomspace(1, top, 8)})
+    fits = [leave_one_out(y, h) for h in halves]
+    return fits[int(np.argmin([np.mean((y - f) ** 2) for f in fits]))]

@@ -12,8 +12,7 @@ from typing import Any
 import numpy as np
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
-from ewb_ident.diagnosis.filters import fft_convolve_columns
-from ewb_ident.diagnosis.inputs import denoised
+from ewb_ident.diagnosis.filters import denoised, fft_convolve_columns
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices

@@ -21,7 +21,7 @@ from ewb_ident.data.stages import (
     TEACHER_FORCED,
 )
 from ewb_ident.data.trace import InputError, Trace
-from ewb_ident.diagnosis.inputs import denoised
+from ewb_ident.diagnosis.filters import denoised
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
