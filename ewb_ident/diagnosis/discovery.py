@@ -17,21 +17,23 @@ model something is missing and what it depends on, without a list of candidate p
 3. **The learned function** is an additive model: for each input, a flexible basis
    (piecewise-linear hinges for levels; odd powers and a smooth sign for signed
    signals; harmonics for angles, at the periods the residual shows: a periodogram in
-   the angle, :func:`angle_periods`, not a list), so any smooth or switching dependence
-   on one input and sums over inputs are representable. It is fitted through the
-   model: the term's effect on the stage's residuals is the model's exact linear
-   response at the place (diagonal for a static place, the motor's impulse response for
-   the motor's equations, both the output and the downstream input for a sensor), at the
-   current fit together with the Jacobian of the stage's own parameters, which are
-   refitted alongside (one Gauss-Newton step of a universal differential equation),
-   with a ridge penalty chosen by cross-validation.
+   the angle, :func:`~ewb_ident.diagnosis.places.angle_periods`, not a list), so any
+   smooth or switching dependence on one input and sums over inputs are representable.
+   It is fitted through the model: the term's effect on the stage's residuals is the
+   model's exact linear response at the place (diagonal for a static place, the motor's
+   impulse response for the motor's equations, both the output and the downstream input
+   for a sensor), at the current fit together with the Jacobian of the stage's own
+   parameters, which are refitted alongside (one Gauss-Newton step of a universal
+   differential equation), with a ridge penalty chosen by cross-validation.
 4. **Held out.** Inputs enter one at a time while they improve the *held-out* residual
    (leave-one-apply-out with three or more applies, else four blocks in time): a term
-   that only fits the data it saw is not kept. Places are ranked by held-out residual.
+   that only fits the data it saw is not kept. Places are ranked by held-out residual;
+   one whose distilled term fails held-out data yields to the next that generalises.
 5. **Distilled.** Sparse regression over a generated library of the chosen inputs
    (powers, saturations, signs, hinges, one-sided and dead-zone forms, harmonics at the
    learned periods, products) keeps the smallest expression that keeps 90 % of the
-   learned term's held-out improvement; of places about as good, the one whose
+   learned term's held-out improvement (greedily; a pair where no single form starts
+   it, as a rise that levels off needs two); of places about as good, the one whose
    expression keeps the most.
 
 The distilled term is then fitted by nonlinear least squares through the JAX model (a
@@ -68,14 +70,20 @@ from ewb_ident.diagnosis.inputs import (
     input_signals,
     learned_groups,
     library,
-    periodic,
     product_of,
     render,
     render_pair,
     sensor_signal,
     stacked,
 )
-from ewb_ident.diagnosis.places import own_sample_channels, place_effect, place_stages, places_of
+from ewb_ident.diagnosis.places import (
+    angle_periods,
+    column_span,
+    linearised,
+    own_sample_channels,
+    place_stages,
+    places_of,
+)
 from ewb_ident.diagnosis.session import model_channels
 from ewb_ident.mechanisms.learned import PLACES
 from ewb_ident.model.integrate import motor_fine
@@ -295,45 +303,10 @@ def equation_of(
     return f"{info.quantity} = {expr} [{info.unit}]"
 
 
-def _linearised(ses, fit, place):
-    """The residual ``r`` and Jacobian ``J`` of the fit ``fit`` at the current values,
-    its channels, their row weights (lowered where a teacher-forced stage carries its
-    measured input's noise), and ``G(U)``: the weighted change of every
-    residual row a term at ``place`` with basis columns ``U`` (n, K) makes (``None``
-    when the term shows in none of the fit's channels)."""
-    from ewb_ident.inference.augmented import residuals_and_jacobian
-
-    n = ses.trace.n
-    r, J, pred = residuals_and_jacobian(fit.problem, fit.u, ses.data)
-    r, J = np.asarray(r, float), np.asarray(J, float)
-    chans = fit.problem.channels[0]
-    n_pad = r.size // len(chans)
-    effect = place_effect(place, fit.values, ses.trace)
-    if not set(effect) & set(chans) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-        # No channel of the fit shows the place, or the fit cannot be linearised there (a
-        # switching mechanism's Jacobian that is not finite): no term is learned at it.
-        return r, J, chans, {}, None
-    weights = {}  # as the fit applied them: each residual over its raw difference
-    for k, ch in enumerate(chans):
-        w, d = np.array(ses.data["w"][ch], float), np.asarray(pred[ch] - ses.data["meas"][ch])
-        weights[ch] = np.divide(r[k * n_pad : (k + 1) * n_pad], d, out=w, where=d != 0)[:n_pad]
-
-    def G_of(U: np.ndarray) -> np.ndarray:
-        blocks = []
-        for ch in chans:
-            B = np.zeros((n_pad, U.shape[1]))
-            if ch in effect:
-                B[:n] = effect[ch](U) * weights[ch][:n, None]
-            blocks.append(B)
-        return np.concatenate(blocks, axis=0)
-
-    return r, J, chans, weights, G_of
-
-
 def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     """The linearised problem of a term at ``place`` about the fit ``fit`` of ``stages``."""
     n = ses.trace.n
-    r, J, chans, weights, G_of = _linearised(ses, fit, place)
+    r, J, chans, weights, G_of = linearised(ses, fit, place)
     if G_of is None:
         return None
     n_pad = r.size // len(chans)
@@ -346,7 +319,7 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     # A column the stage's own parameters already make (the torque itself at the torque's
     # output is a change of mu) is no new physics: left out.
     if J.shape[1]:
-        Uj = _span(J)
+        Uj = column_span(J)
         orth = np.linalg.norm(G - Uj @ (Uj.T @ G), axis=0)
         G[:, orth < MIN_NEW_SHARE] = 0.0
     fold_rows = np.concatenate([np.r_[fold, -np.ones(n_pad - n, int)]] * len(chans))
@@ -355,81 +328,6 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     noise_rows = float(np.count_nonzero(fold_rows >= 0)) * white_level(r, fold_rows) ** 2
     own = np.concatenate([np.full(n_pad, ch in STAGE_OUTPUTS[stage]) for ch in chans])
     return Design(r, J, fold_rows, G, noise_rows, rho, norms, own)
-
-
-def _span(J: np.ndarray) -> np.ndarray:
-    """An orthonormal basis of the columns of ``J`` (its numerically nonzero directions)."""
-    Uj, sj, _ = np.linalg.svd(J, full_matrices=False)
-    return Uj[:, sj > 1e-10 * max(float(sj[0]), 1e-300)]
-
-
-# ----------------------------------------------------------------------------- periods
-
-
-#: Shortest period of a term periodic in the pinion angle that discovery looks for, deg
-#: (a cogging torque repeats 360/LCM(slots, poles) degrees of the rotor: 15-30 for
-#: common small motors), and the longest (once per revolution).
-PERIOD_RANGE_DEG = (10.0, 360.0)
-#: Periods of the coarse scan; neighbours differ in frequency by at most half a cycle
-#: over the angle's span where that takes no more than this many.
-SCAN_PERIODS = 160
-
-
-def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
-    """The periods (deg) of a term periodic in the pinion angle that best explain the
-    residual at ``place``, estimated from the residual itself (a periodogram in the
-    angle, through the model's response at the place and orthogonal to what the stage's
-    parameters make; a harmonic times a carrier is not scanned: a current times a slow
-    harmonic took the place of a resistance that heats), not taken from a list: a coarse
-    scan over every period the trace covers (1.5 cycles or more) and resolves (4 samples
-    a cycle or more), then each of the ``most`` best peaks refined. The held-out
-    selection then judges them as any other input."""
-    s = signals.get("angle")
-    if s is None:
-        return []
-    vals = s.values if s.fine is None else s.fine.reshape(-1)
-    step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0.0
-    span = float(np.ptp(s.values))
-    lo, hi = max(PERIOD_RANGE_DEG[0], 4.0 * step), min(PERIOD_RANGE_DEG[1], span / 1.5)
-    if not lo < hi:
-        return []
-    r, J, _, _, G_of = _linearised(ses, fit, place)
-    if G_of is None:
-        return []
-    Uj = _span(J) if J.shape[1] else np.zeros((r.size, 0))
-    r_perp = r - Uj @ (Uj.T @ r)
-
-    def gains(periods) -> np.ndarray:
-        out = []
-        for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
-            chunk = periods[i : i + 16]
-            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
-            G = G_of(U)
-            G = G - Uj @ (Uj.T @ G)
-            for k in range(len(chunk)):
-                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
-                Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
-                out.append(float(np.sum((Q.T @ r_perp) ** 2)))
-        return np.asarray(out)
-
-    # Frequencies (cycles per degree): spaced by half a cycle over the span, or
-    # geometrically when that would take more than SCAN_PERIODS.
-    f_lo, f_hi, df = 1.0 / hi, 1.0 / lo, 0.5 / span
-    if (f_hi - f_lo) / df + 1 <= SCAN_PERIODS:
-        freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
-    else:
-        freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
-    g = gains(1.0 / freqs)
-    # Local maxima inside the scan: one at either end is a trend (the gain still rises
-    # past the periods the trace covers or resolves), not a period.
-    inner = np.arange(1, g.size - 1)
-    peaks = inner[(g[inner] >= g[inner - 1]) & (g[inner] >= g[inner + 1])]
-    out = []
-    for k in sorted(peaks, key=lambda k: -g[k])[:most]:
-        fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
-        gf = gains(1.0 / fine)
-        out.append(float(1.0 / fine[int(np.argmax(gf))]))
-    return out
 
 
 def _column_index(d: Design, groups: Mapping[str, list[Column]], names) -> list[int]:
@@ -534,8 +432,9 @@ def _linear_in(item, other) -> bool:  # linear in the inputs of ``other`` (only 
 def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[list[int], float]:
     """Forward selection over the library from the items ``chosen``: items enter by
     held-out residual until the expression keeps :data:`KEEP_SHARE` of the learned
-    term's held-out gain (at most :data:`MAX_TERMS`). Returns the items and the held-out
-    residual."""
+    term's held-out gain (at most :data:`MAX_TERMS`); when no single item starts the
+    expression, the best pair may (two forms that only together make the learned shape:
+    a rise that levels off, a bump). Returns the items and the held-out residual."""
     target = learned.heldout_before - KEEP_SHARE * (learned.heldout_before - learned.heldout_after)
     cur = d.heldout(_item_cols(items, chosen), RIDGES[0]) if chosen else learned.heldout_before
     while len(chosen) < MAX_TERMS and not (chosen and cur <= target):
@@ -550,11 +449,29 @@ def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[li
         # A law linear in the best's input where held-out data cannot tell them apart.
         same = [v for v in vals if _linear_in(items[v[1]], items[best[1]])]
         best = min([v for v in same if d.score(best[0], v[0]) < TIE] or [best])
-        if cur - best[0] < MIN_STEP_SHARE * max(learned.excess, 1e-300):
-            break
+        step = MIN_STEP_SHARE * max(learned.excess, 1e-300)
+        if cur - best[0] < step:
+            pair = None if chosen else _best_pair(d, items)
+            if pair is None or cur - pair[0] < 2 * step:
+                break
+            best, chosen = pair, list(pair[1:])
+            cur = best[0]
+            continue
         chosen = [*chosen, best[1]]
         cur = best[0]
     return chosen, cur
+
+
+def _best_pair(d: Design, items) -> tuple[float, int, int] | None:
+    """The pair of library items with the lowest held-out residual (``None``: fewer than
+    two items)."""
+    n = len(items)
+    pairs = [
+        (d.heldout(_item_cols(items, [a, b]), RIDGES[0]), a, b)
+        for a in range(n)
+        for b in range(a + 1, n)
+    ]
+    return min(pairs) if pairs else None
 
 
 def _distilled_fit(d: Design, items, learned: PlaceFit, place: str, chosen, cur):
@@ -731,6 +648,13 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     cands = keep_generalising([results[0], *close_to(pf)])
     kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
     kept = cands[next(i for i, g in enumerate(kept_gain) if g >= PLACE_TIE * max(kept_gain))]
+    if not distilled_at(kept)[0].generalises:
+        # A larger gain whose distilled term fails held-out data (a sensor's term over
+        # two stages, one of them far worse fitted without it) does not hide a place
+        # further down whose learned and distilled terms both generalise.
+        kept = next(
+            (r for r in results if r[0].generalises and distilled_at(r)[0].generalises), kept
+        )
     if kept is not results[0]:
         results.insert(0, results.pop(results.index(kept)))
         pf, d, groups, sig, stages, (model, raw) = kept

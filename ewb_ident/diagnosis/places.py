@@ -13,6 +13,7 @@ import numpy as np
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
 from ewb_ident.diagnosis.filters import denoised, fft_convolve_columns
+from ewb_ident.diagnosis.inputs import Signal, periodic
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
@@ -126,3 +127,116 @@ def place_stages(place: str, stages: Sequence[str]) -> tuple[str, ...]:
     """The teacher-forced stages (of those checkable) whose residuals a term at ``place``
     changes."""
     return tuple(s for s in LearnedTerm(place=place).stages if s in stages)
+
+
+# ----------------------------------------------------------------------------- response
+
+
+def linearised(ses, fit, place):
+    """The residual ``r`` and Jacobian ``J`` of the fit ``fit`` at the current values,
+    its channels, their row weights (lowered where a teacher-forced stage carries its
+    measured input's noise), and ``G(U)``: the weighted change of every
+    residual row a term at ``place`` with basis columns ``U`` (n, K) makes (``None``
+    when the term shows in none of the fit's channels)."""
+    from ewb_ident.inference.augmented import residuals_and_jacobian
+
+    n = ses.trace.n
+    r, J, pred = residuals_and_jacobian(fit.problem, fit.u, ses.data)
+    r, J = np.asarray(r, float), np.asarray(J, float)
+    chans = fit.problem.channels[0]
+    n_pad = r.size // len(chans)
+    effect = place_effect(place, fit.values, ses.trace)
+    if not set(effect) & set(chans) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        # No channel of the fit shows the place, or the fit cannot be linearised there (a
+        # switching mechanism's Jacobian that is not finite): no term is learned at it.
+        return r, J, chans, {}, None
+    weights = {}  # as the fit applied them: each residual over its raw difference
+    for k, ch in enumerate(chans):
+        w, d = np.array(ses.data["w"][ch], float), np.asarray(pred[ch] - ses.data["meas"][ch])
+        weights[ch] = np.divide(r[k * n_pad : (k + 1) * n_pad], d, out=w, where=d != 0)[:n_pad]
+
+    def G_of(U: np.ndarray) -> np.ndarray:
+        blocks = []
+        for ch in chans:
+            B = np.zeros((n_pad, U.shape[1]))
+            if ch in effect:
+                B[:n] = effect[ch](U) * weights[ch][:n, None]
+            blocks.append(B)
+        return np.concatenate(blocks, axis=0)
+
+    return r, J, chans, weights, G_of
+
+
+def column_span(J: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns of ``J`` (its numerically nonzero directions)."""
+    Uj, sj, _ = np.linalg.svd(J, full_matrices=False)
+    return Uj[:, sj > 1e-10 * max(float(sj[0]), 1e-300)]
+
+
+# ----------------------------------------------------------------------------- periods
+
+
+#: Shortest period of a term periodic in the pinion angle that discovery looks for, deg
+#: (a cogging torque repeats 360/LCM(slots, poles) degrees of the rotor: 15-30 for
+#: common small motors), and the longest (once per revolution).
+PERIOD_RANGE_DEG = (10.0, 360.0)
+#: Periods of the coarse scan; neighbours differ in frequency by at most half a cycle
+#: over the angle's span where that takes no more than this many.
+SCAN_PERIODS = 160
+
+
+def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
+    """The periods (deg) of a term periodic in the pinion angle that best explain the
+    residual at ``place``, estimated from the residual itself (a periodogram in the
+    angle, through the model's response at the place and orthogonal to what the stage's
+    parameters make; a harmonic times a carrier is not scanned: a current times a slow
+    harmonic took the place of a resistance that heats), not taken from a list: a coarse
+    scan over every period the trace covers (1.5 cycles or more) and resolves (4 samples
+    a cycle or more), then each of the ``most`` best peaks refined. The held-out
+    selection then judges them as any other input."""
+    s = signals.get("angle")
+    if s is None:
+        return []
+    vals = s.values if s.fine is None else s.fine.reshape(-1)
+    step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0.0
+    span = float(np.ptp(s.values))
+    lo, hi = max(PERIOD_RANGE_DEG[0], 4.0 * step), min(PERIOD_RANGE_DEG[1], span / 1.5)
+    if not lo < hi:
+        return []
+    r, J, _, _, G_of = linearised(ses, fit, place)
+    if G_of is None:
+        return []
+    Uj = column_span(J) if J.shape[1] else np.zeros((r.size, 0))
+    r_perp = r - Uj @ (Uj.T @ r)
+
+    def gains(periods) -> np.ndarray:
+        out = []
+        for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
+            chunk = periods[i : i + 16]
+            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
+            G = G_of(U)
+            G = G - Uj @ (Uj.T @ G)
+            for k in range(len(chunk)):
+                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
+                Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
+                out.append(float(np.sum((Q.T @ r_perp) ** 2)))
+        return np.asarray(out)
+
+    # Frequencies (cycles per degree): spaced by half a cycle over the span, or
+    # geometrically when that would take more than SCAN_PERIODS.
+    f_lo, f_hi, df = 1.0 / hi, 1.0 / lo, 0.5 / span
+    if (f_hi - f_lo) / df + 1 <= SCAN_PERIODS:
+        freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
+    else:
+        freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
+    g = gains(1.0 / freqs)
+    # Local maxima inside the scan: one at either end is a trend (the gain still rises
+    # past the periods the trace covers or resolves), not a period.
+    inner = np.arange(1, g.size - 1)
+    peaks = inner[(g[inner] >= g[inner - 1]) & (g[inner] >= g[inner + 1])]
+    out = []
+    for k in sorted(peaks, key=lambda k: -g[k])[:most]:
+        fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
+        gf = gains(1.0 / fine)
+        out.append(float(1.0 / fine[int(np.argmax(gf))]))
+    return out
