@@ -339,10 +339,11 @@ def _column_index(d: Design, groups: Mapping[str, list[Column]], names) -> list[
     return idx
 
 
-#: Signals local to a place (its quantities and their histories; a rate only where listed,
-#: as the voltage's edges are no state of the circuit): preferred among near-equal inputs.
+#: Signals local to a place (its states and their histories; a rate only where listed):
+#: preferred among near-equal inputs. Not the logged voltage: the drive, recorded
+#: exactly, edges out a state the model computes about a biased fit (a drag's speed).
 LOCAL: dict[str, tuple[str, ...]] = {
-    "motor.electrical": ("current", "voltage", "heat", "speed"),
+    "motor.electrical": ("current", "heat", "speed"),
     "motor.mechanical": ("speed", "current", "angle"),
     "drive": ("force", "angle"),
     "gap": ("force", "angle"),
@@ -463,8 +464,7 @@ def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[li
 
 
 def _best_pair(d: Design, items) -> tuple[float, int, int] | None:
-    """The pair of library items with the lowest held-out residual (``None``: fewer than
-    two items)."""
+    """The pair of library items with the lowest held-out residual (or ``None``)."""
     n = len(items)
     pairs = [
         (d.heldout(_item_cols(items, [a, b]), RIDGES[0]), a, b)
