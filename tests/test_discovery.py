@@ -594,6 +594,23 @@ def test_a_larger_gain_that_fails_a_heldout_fold_does_not_hide_a_term_that_gener
 
 
 @pytest.mark.slow
+def test_a_drag_is_learned_on_the_speed_not_on_the_logged_voltage(tmp_path):
+    """A quadratic drag on the motor of an independent rig, 1 kHz, closed loop: a term on
+    the logged voltage (recorded exactly) fits held-out data about as well as one on the
+    speed the model computes about the biased baseline; the voltage is the drive, not a
+    state of the circuit, and the drag was learned on it with the speed as its twin."""
+    from ewb_ident.data.readers import read_trace
+    from validation_rigs import uncatalogued_rig as ur
+
+    case = ur.make_case("quadratic_drag", "b", 20261359, 39)
+    assert case.truth["rate"] == 1000 and case.truth["depends_on"] == ["speed"]
+    res = diagnose(read_trace(ur.write_case(case, tmp_path, "drag")))
+    (top,) = [f for f in res.findings if f.place]
+    assert top.place.startswith("motor.") and top.depends_on == ("speed",)
+    assert top.heldout["excess_share"] >= 0.8
+
+
+@pytest.mark.slow
 def test_a_learned_term_that_the_chain_absorbed_is_confirmed_from_a_consistent_start(tmp_path):
     """A quadratic drag on the motor of an independent rig, no current sensor: the chain
     fitted from the voltage without the term has bent a, b, c to take it up, so the
