@@ -455,8 +455,7 @@ def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[li
             pair = None if chosen else _best_pair(d, items)
             if pair is None or cur - pair[0] < 2 * step:
                 break
-            best, chosen = pair, list(pair[1:])
-            cur = best[0]
+            chosen, cur = list(pair[1:]), pair[0]
             continue
         chosen = [*chosen, best[1]]
         cur = best[0]
