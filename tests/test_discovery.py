@@ -581,7 +581,8 @@ def test_a_larger_gain_that_fails_a_heldout_fold_does_not_hide_a_term_that_gener
     fitted without it) removes more residual in absolute terms but fails one of the
     three applies held out, while the motor's term on the speed removes all but the noise
     in every fold. The verdict was `unexplained` with no term while the place first by
-    gain was kept whatever its distilled term did on held-out data."""
+    gain was kept whatever its distilled term did on held-out data (and the sensor's
+    input was then listed as a signal the trace cannot tell from the speed)."""
     from ewb_ident.data.readers import read_trace
     from validation_rigs import uncatalogued_rig as ur
 
@@ -591,6 +592,8 @@ def test_a_larger_gain_that_fails_a_heldout_fold_does_not_hide_a_term_that_gener
     (top,) = [f for f in res.findings if f.place]
     assert top.place.startswith("motor.") and top.depends_on == ("speed",)
     assert top.heldout["excess_share"] >= 0.8
+    # The sensor's term failed the folds: its input is no twin of the speed.
+    assert "current" not in top.equivalents
 
 
 @pytest.mark.slow

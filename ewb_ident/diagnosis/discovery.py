@@ -44,6 +44,7 @@ Thresholds were set before any study of uncatalogued physics was run.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -262,11 +263,11 @@ class Discovery(TermColumns):
 
     @property
     def close_places(self) -> tuple[PlaceFit, ...]:
-        """The other places whose learned term explains the mismatch about as well."""
-        gain = CLOSE * self.learned.rank_gain
-        return tuple(
-            p for p in self.places if p.place != self.place and p.groups and p.rank_gain >= gain
-        )
+        """The other places whose learned term explains the mismatch about as well (and
+        generalises, where this one's does)."""
+        gain, held = CLOSE * self.learned.rank_gain, self.learned.generalises
+        near = [p for p in self.places if p.place != self.place and p.groups]
+        return tuple(p for p in near if p.rank_gain >= gain and (p.generalises or not held))
 
     @property
     def equivalents(self) -> tuple[str, ...]:
@@ -464,13 +465,8 @@ def _forward(d: Design, items, learned: PlaceFit, chosen: list[int]) -> tuple[li
 
 def _best_pair(d: Design, items) -> tuple[float, int, int] | None:
     """The pair of library items with the lowest held-out residual (or ``None``)."""
-    n = len(items)
-    pairs = [
-        (d.heldout(_item_cols(items, [a, b]), RIDGES[0]), a, b)
-        for a in range(n)
-        for b in range(a + 1, n)
-    ]
-    return min(pairs) if pairs else None
+    pairs = itertools.combinations(range(len(items)), 2)
+    return min(((d.heldout(_item_cols(items, p), RIDGES[0]), *p) for p in pairs), default=None)
 
 
 def _distilled_fit(d: Design, items, learned: PlaceFit, place: str, chosen, cur):
@@ -642,7 +638,8 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     # the library cannot express (its shape is in the learned basis but not the
     # library's) yields to one it can.
     def close_to(pf):  # the other places whose learned term explains about as much
-        return [r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain]
+        near = (r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain)
+        return [r for r in near if r[0].generalises or not pf.generalises]
 
     cands = keep_generalising([results[0], *close_to(pf)])
     kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
