@@ -263,11 +263,8 @@ class Discovery(TermColumns):
 
     @property
     def close_places(self) -> tuple[PlaceFit, ...]:
-        """The other places whose learned term explains the mismatch about as well (and
-        generalises, where this one's does)."""
-        gain, held = CLOSE * self.learned.rank_gain, self.learned.generalises
-        near = [p for p in self.places if p.place != self.place and p.groups]
-        return tuple(p for p in near if p.rank_gain >= gain and (p.generalises or not held))
+        """The other places whose learned term explains the mismatch about as well."""
+        return tuple(p for p in self.places if p.place != self.place and alike(p, self.learned))
 
     @property
     def equivalents(self) -> tuple[str, ...]:
@@ -638,19 +635,15 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     # the library cannot express (its shape is in the learned basis but not the
     # library's) yields to one it can.
     def close_to(pf):  # the other places whose learned term explains about as much
-        near = (r for r in results[1:] if r[0].groups and r[0].rank_gain >= CLOSE * pf.rank_gain)
-        return [r for r in near if r[0].generalises or not pf.generalises]
+        return [r for r in results[1:] if alike(r[0], pf)]
 
     cands = keep_generalising([results[0], *close_to(pf)])
     kept_gain = [f.heldout_before - f.heldout_after for f, *_ in map(distilled_at, cands)]
     kept = cands[next(i for i, g in enumerate(kept_gain) if g >= PLACE_TIE * max(kept_gain))]
     if not distilled_at(kept)[0].generalises:
-        # A larger gain whose distilled term fails held-out data (a sensor's term over
-        # two stages, one of them far worse fitted without it) does not hide a place
-        # further down whose learned and distilled terms both generalise.
-        kept = next(
-            (r for r in results if r[0].generalises and distilled_at(r)[0].generalises), kept
-        )
+        # A larger gain that fails held-out data does not hide a place whose terms pass.
+        passing = (r for r in results if r[0].generalises and distilled_at(r)[0].generalises)
+        kept = next(passing, kept)
     if kept is not results[0]:
         results.insert(0, results.pop(results.index(kept)))
         pf, d, groups, sig, stages, (model, raw) = kept
@@ -692,6 +685,13 @@ def keep_generalising(cands: list) -> list:
 #: Places whose held-out gain is at least this share of the best's explain the
 #: mismatch about as well: the trace cannot tell them apart.
 CLOSE = 0.9
+
+
+def alike(other: PlaceFit, to: PlaceFit) -> bool:
+    """Whether ``other`` explains the mismatch about as well as ``to`` (:data:`CLOSE`) and
+    passes the held-out folds where ``to`` does (a term that fails them is no twin)."""
+    good = other.generalises or not to.generalises
+    return bool(other.groups) and other.rank_gain >= CLOSE * to.rank_gain and good
 
 
 def _specificity(place: str) -> int:
