@@ -74,13 +74,15 @@ from ewb_ident.diagnosis.inputs import (
     product_of,
     render,
     render_pair,
-    sensor_signal,
     stacked,
 )
 from ewb_ident.diagnosis.places import (
     angle_periods,
     column_span,
+    is_local,
     linearised,
+    local_signals,
+    monotone_twins,
     own_sample_channels,
     place_stages,
     places_of,
@@ -337,21 +339,6 @@ def _column_index(d: Design, groups: Mapping[str, list[Column]], names) -> list[
     return idx
 
 
-#: Signals local to a place (its states and their histories; a rate only where listed):
-#: preferred among near-equal inputs. Not the logged voltage: the drive, recorded
-#: exactly, edges out a state the model computes about a biased fit (a drag's speed).
-LOCAL: dict[str, tuple[str, ...]] = {
-    "motor.electrical": ("current", "heat", "speed"),
-    "motor.mechanical": ("speed", "current", "angle"),
-    "drive": ("force", "angle"),
-    "gap": ("force", "angle"),
-    "force.input": ("x", "time", "energy", "heat"),
-    "force.output": ("force", "x_rate", "force_rate", "force_history"),
-    "friction": ("force", "disc_speed", "energy", "distance", "disc_angle"),
-    "torque.output": ("force", "torque", "disc_angle"),
-}
-
-
 #: Signals a place's term cannot depend on: the driver's voltage acts in the motor's
 #: circuit (its electrical equation, and the current sensor, which reads any path beside
 #: the motor); the rest sees it only through the current.
@@ -359,22 +346,16 @@ CIRCUIT = ("motor.electrical", "sensor.current_A")
 NOT_INPUTS = {p: ("voltage", "voltage_rate") for p in PLACES if p not in CIRCUIT}
 
 
-def _is_local(group: str, local: Sequence[str]) -> bool:
-    name = group.partition("@")[0]
-    if name.endswith("_rate"):
-        return name in local
-    return any(name == s or name.startswith(s + "_") for s in local if s)
-
-
-def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> PlaceFit:
-    """Forward selection of input groups at one place by held-out residual."""
+def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=None) -> PlaceFit:
+    """Forward selection of input groups at one place by held-out residual (an input
+    one of ``sig`` local to the place is a monotone function of is read as that one)."""
     base_ho, _ = d.best_heldout([])
     base_in, _ = d.insample([], 0.0)
     excess = max(base_ho - d.noise_rows, 0.0)
     chosen, ties, cur = [], [], base_ho  # input groups chosen, groups tied with one; residual
     usable = [g for g in groups if _column_index(d, groups, {g})]
-    own = sensor_signal(place)
-    local = (own, f"{own}_rate") if own else LOCAL.get(place, ())
+    local = local_signals(place)
+    twins = monotone_twins(sig, local) if sig else {}
     for _ in range(MAX_INPUTS):
         tried = []
         for g in usable:
@@ -389,10 +370,13 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str) -> Pl
         # displacement, force, torque): a signal local to the place that does nearly
         # as well is the better reading.
         near = [
-            t for t in tried if cur - t[0] >= PLACE_TIE * (cur - best[0]) and _is_local(t[1], local)
+            t for t in tried if cur - t[0] >= PLACE_TIE * (cur - best[0]) and is_local(t[1], local)
         ]
-        if near and not _is_local(best[1], local):
+        if near and not is_local(best[1], local):
             best = min(near)
+        twin = [t for t in tried if t[1] == twins.get(best[1])]
+        if twin:  # the same function of the same motion, read on the local signal
+            ties, best = [*ties, best[1]], twin[0]
         gain = cur - best[0]
         if gain < MIN_STEP_SHARE * max(excess, 1e-300):
             break
@@ -588,7 +572,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue
-        pf = learn_place(d, groups, place)
+        pf = learn_place(d, groups, place, sig)
         results.append((pf, d, groups, sig, stages, (tuple(model), raw)))
     if not results:
         return None

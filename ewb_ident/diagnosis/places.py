@@ -10,10 +10,11 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from scipy.stats import rankdata
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
 from ewb_ident.diagnosis.filters import denoised, fft_convolve_columns
-from ewb_ident.diagnosis.inputs import Signal, periodic
+from ewb_ident.diagnosis.inputs import Signal, periodic, sensor_signal
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
@@ -239,4 +240,64 @@ def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int
         fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
         gf = gains(1.0 / fine)
         out.append(float(1.0 / fine[int(np.argmax(gf))]))
+    return out
+
+
+#: Signals local to a place (its states and their histories; a rate only where listed):
+#: preferred among near-equal inputs. Not the logged voltage: the drive, recorded
+#: exactly, edges out a state the model computes about a biased fit (a drag's speed).
+LOCAL: dict[str, tuple[str, ...]] = {
+    "motor.electrical": ("current", "heat", "speed"),
+    "motor.mechanical": ("speed", "current", "angle"),
+    "drive": ("force", "angle"),
+    "gap": ("force", "angle"),
+    "force.input": ("x", "time", "energy", "heat"),
+    "force.output": ("force", "x_rate", "force_rate", "force_history"),
+    "friction": ("force", "disc_speed", "energy", "distance", "disc_angle"),
+    "torque.output": ("force", "torque", "disc_angle"),
+}
+
+
+def local_signals(place: str) -> tuple[str, ...]:
+    """The signals local to ``place`` (a sensor's: what it reads, and its rate)."""
+    own = sensor_signal(place)
+    return (own, f"{own}_rate") if own else LOCAL.get(place, ())
+
+
+def is_local(group: str, local: Sequence[str]) -> bool:
+    """Whether an input group (``"force_history_0.5s"``, ``"angle@60"``) is one of
+    ``local`` or a history of one (a rate only where listed)."""
+    name = group.partition("@")[0]
+    if name.endswith("_rate"):
+        return name in local
+    return any(name == s or name.startswith(s + "_") for s in local if s)
+
+
+#: Spearman's rank correlation from which two signals are one monotone function of the
+#: other over the trace (the pinion angle and the piston's displacement along the gap
+#: curve, below the bell's centre the force too).
+MONOTONE = 0.999
+
+
+def monotone_twins(signals: Mapping[str, Signal], local: Sequence[str]) -> dict[str, str]:
+    """For each signal of ``signals`` not in ``local``, the first of ``local`` that is a
+    monotone function of it over the trace (:data:`MONOTONE`, ties ranked alike): a
+    learned function of one is a function of the other, and the trace cannot tell which
+    it is; the signal local to the place is the reading. Not for a signal that only grows
+    with time (an energy, a distance): clocks are all in the same order, and the trace
+    tells them apart by their shapes."""
+
+    def ranks(v: np.ndarray) -> np.ndarray:
+        r = rankdata(v) - (v.size + 1) / 2.0
+        return r / max(float(np.linalg.norm(r)), 1e-300)
+
+    rk = {n: ranks(s.values) for n, s in signals.items()
+          if np.all(np.isfinite(s.values)) and np.ptp(s.values) > 0}  # fmt: skip
+    clock = ranks(np.arange(float(next(iter(signals.values())).values.size)))
+    rk = {n: r for n, r in rk.items() if abs(r @ clock) < MONOTONE}
+    out = {}
+    for name in (n for n in rk if n not in local):
+        twin = (lo for lo in local if lo in rk and abs(rk[lo] @ rk[name]) >= MONOTONE)
+        if t := next(twin, None):
+            out[name] = t
     return out
