@@ -82,7 +82,7 @@ from ewb_ident.diagnosis.places import (
     is_local,
     linearised,
     local_signals,
-    monotone_twins,
+    monotone_twin,
     own_sample_channels,
     place_stages,
     places_of,
@@ -355,7 +355,6 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=N
     chosen, ties, cur = [], [], base_ho  # input groups chosen, groups tied with one; residual
     usable = [g for g in groups if _column_index(d, groups, {g})]
     local = local_signals(place)
-    twins = monotone_twins(sig, local) if sig else {}
     for _ in range(MAX_INPUTS):
         tried = []
         for g in usable:
@@ -374,7 +373,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=N
         ]
         if near and not is_local(best[1], local):
             best = min(near)
-        twin = [t for t in tried if t[1] == twins.get(best[1])]
+        twin = [t for t in tried if sig and t[1] == monotone_twin(sig, best[1], local)]
         if twin:  # the same function of the same motion, read on the local signal
             ties, best = [*ties, best[1]], twin[0]
         gain = cur - best[0]

@@ -279,25 +279,23 @@ def is_local(group: str, local: Sequence[str]) -> bool:
 MONOTONE = 0.999
 
 
-def monotone_twins(signals: Mapping[str, Signal], local: Sequence[str]) -> dict[str, str]:
-    """For each signal of ``signals`` not in ``local``, the first of ``local`` that is a
-    monotone function of it over the trace (:data:`MONOTONE`, ties ranked alike): a
-    learned function of one is a function of the other, and the trace cannot tell which
-    it is; the signal local to the place is the reading. Not for a signal that only grows
-    with time (an energy, a distance): clocks are all in the same order, and the trace
-    tells them apart by their shapes."""
+def monotone_twin(signals: Mapping[str, Signal], name: str, local: Sequence[str]) -> str | None:
+    """The first signal of ``local`` that is a monotone function of the signal ``name``
+    over the trace (:data:`MONOTONE`, ties ranked alike), if ``name`` is not local
+    itself: a learned function of one is a function of the other, and the trace cannot
+    tell which it is; the signal local to the place is the reading. ``None`` for a signal
+    that only grows with time (an energy, a distance): clocks are all in the same order,
+    and the trace tells them apart by their shapes."""
 
-    def ranks(v: np.ndarray) -> np.ndarray:
+    def ranks(v: np.ndarray) -> np.ndarray | None:
+        if not (np.all(np.isfinite(v)) and np.ptp(v) > 0):
+            return None
         r = rankdata(v) - (v.size + 1) / 2.0
-        return r / max(float(np.linalg.norm(r)), 1e-300)
+        return r / float(np.linalg.norm(r))
 
-    rk = {n: ranks(s.values) for n, s in signals.items()
-          if np.all(np.isfinite(s.values)) and np.ptp(s.values) > 0}  # fmt: skip
-    clock = ranks(np.arange(float(next(iter(signals.values())).values.size)))
-    rk = {n: r for n, r in rk.items() if abs(r @ clock) < MONOTONE}
-    out = {}
-    for name in (n for n in rk if n not in local):
-        twin = (lo for lo in local if lo in rk and abs(rk[lo] @ rk[name]) >= MONOTONE)
-        if t := next(twin, None):
-            out[name] = t
-    return out
+    own = ranks(signals[name].values) if name in signals and name not in local else None
+    if own is None or abs(own @ ranks(np.arange(float(own.size)))) >= MONOTONE:
+        return None
+    twins = (lo for lo in local if lo in signals and (r := ranks(signals[lo].values)) is not None
+             and abs(r @ own) >= MONOTONE)  # fmt: skip
+    return next(twins, None)
