@@ -347,8 +347,9 @@ NOT_INPUTS = {p: ("voltage", "voltage_rate") for p in PLACES if p not in CIRCUIT
 
 
 def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=None) -> PlaceFit:
-    """Forward selection of input groups at one place by held-out residual (an input
-    one of ``sig`` local to the place is a monotone function of is read as that one)."""
+    """Forward selection of input groups at one place by held-out residual; an input that
+    is a monotone function of a signal of ``sig`` (``{name: Signal}``) local to the place
+    is read as that one (:func:`~ewb_ident.diagnosis.places.monotone_twin`)."""
     base_ho, _ = d.best_heldout([])
     base_in, _ = d.insample([], 0.0)
     excess = max(base_ho - d.noise_rows, 0.0)
@@ -373,7 +374,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=N
         ]
         if near and not is_local(best[1], local):
             best = min(near)
-        twin = [t for t in tried if sig and t[1] == monotone_twin(sig, best[1], local)]
+        twin = [t for t in tried if t[1] == monotone_twin(sig or {}, best[1], local)]
         if twin:  # the same function of the same motion, read on the local signal
             ties, best = [*ties, best[1]], twin[0]
         gain = cur - best[0]
