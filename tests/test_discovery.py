@@ -518,30 +518,6 @@ def test_the_motor_response_of_an_armature_far_faster_than_the_sample_is_finite(
     np.testing.assert_allclose(fast[1:], faster[1:], rtol=1e-2, atol=1e-3 * np.abs(faster).max())
 
 
-def test_a_term_inside_the_motor_moves_its_states_as_the_fit_assumes():
-    """The second pass learns from the motor's states with the first term inside: the
-    voltage or load torque added there moves the angle and current by what the place's
-    linear response (the one every term is fitted through) says, sign and units alike."""
-    from ewb_ident.data.readers import read_trace
-    from ewb_ident.model.integrate import motor_fine
-    from ewb_ident.model.params import EWBParams
-
-    trace = read_trace("datasets/steps_200hz.csv")
-    values = EWBParams().as_dict()
-    term = 0.3 * np.sin(np.linspace(0.0, 9.0, trace.n))
-    base = motor_fine(values, trace)
-    for place, key, scale in (
-        ("motor.electrical", "voltage", 1.0),
-        ("motor.mechanical", "load", 0.05),
-    ):
-        moved = motor_fine(values, trace, **{key: scale * term})
-        effect = places.place_effect(place, values, trace)
-        for ch, name in (("theta_deg", "angle"), ("current_A", "current")):
-            want = effect[ch](scale * term[:, None])[:, 0]
-            got = moved[name][:, 0] - base[name][:, 0]
-            np.testing.assert_allclose(got, want, atol=1e-6 * np.abs(want).max())
-
-
 def test_a_temperature_rise_that_cools_is_an_input_and_a_clipping_is_in_the_basis():
     """The squared current low-passed over each history time constant is an input (a
     thermal state with that time constant), and a signed input's learned basis holds

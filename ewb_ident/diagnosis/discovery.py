@@ -72,17 +72,17 @@ from ewb_ident.diagnosis.inputs import (
     learned_groups,
     library,
     product_of,
+    render,
+    render_pair,
     stacked,
 )
 from ewb_ident.diagnosis.places import (
     angle_periods,
     column_span,
-    equation_of,
     is_local,
     linearised,
     local_signals,
     monotone_twin,
-    motor_with_term,
     own_sample_channels,
     place_stages,
     places_of,
@@ -282,6 +282,25 @@ class Discovery(TermColumns):
         return equation_of(
             self.place, self.terms, self.coef if coef is None else coef, self.signals
         )
+
+
+def equation_of(
+    place: str,
+    terms: Sequence[Sequence[Column]],
+    coef: Sequence[float],
+    signals: Mapping[str, Signal],
+) -> str:
+    """A term's equation in SI units, ``quantity = expression [unit]`` (a sine and
+    cosine pair as one harmonic)."""
+    coef = list(coef)
+    info = PLACES[place]
+    parts, k = [], 0
+    for t in terms:
+        cs = coef[k : k + len(t)]
+        k += len(t)
+        parts.append(render_pair(t, cs, signals) if len(t) == 2 else render(t[0], cs[0], signals))
+    expr = " ".join(parts).lstrip("+")
+    return f"{info.quantity} = {expr} [{info.unit}]"
 
 
 def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
@@ -547,25 +566,14 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         fine = motor_fine(fit.values, trace) if place.startswith("motor.") else None
         model = model_channels(ses, fit)
         raw = own_sample_channels(trace, model, stages)
-        kept = None
-        for second in (False, True):  # in the motor, again from the states the term corrects
-            sig = input_signals(trace, model, fine, raw)
-            sig = {k: v for k, v in sig.items() if k not in NOT_INPUTS.get(place, ())}
-            groups = learned_groups(sig, carriers_of(place), angle_periods(ses, fit, place, sig))
-            d = _design(ses, fit, place, groups, fold, stage)
-            if d is None:
-                break
-            pf = learn_place(d, groups, place, sig)
-            if kept is None or pf.heldout_after < kept[0].heldout_after:
-                kept = (pf, d, groups, sig, stages, (tuple(model), raw))
-            if second or fine is None or not pf.groups:
-                break
-            cols = [c for g in groups.values() for c in g]
-            fine = motor_with_term(ses, fit, place, d, cols, _column_index(d, groups, pf.groups))
-            if fine is None:
-                break
-        if kept is not None:
-            results.append(kept)
+        sig = input_signals(trace, model, fine, raw)
+        sig = {k: v for k, v in sig.items() if k not in NOT_INPUTS.get(place, ())}
+        groups = learned_groups(sig, carriers_of(place), angle_periods(ses, fit, place, sig))
+        d = _design(ses, fit, place, groups, fold, stage)
+        if d is None:
+            continue
+        pf = learn_place(d, groups, place, sig)
+        results.append((pf, d, groups, sig, stages, (tuple(model), raw)))
     if not results:
         return None
     # The place whose term removes the most held-out residual (in units of the noise:

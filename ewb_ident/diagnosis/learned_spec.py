@@ -12,7 +12,12 @@ import numpy as np
 
 from ewb_ident.data.stages import CHANNELS
 from ewb_ident.data.trace import InputError
-from ewb_ident.diagnosis.discovery import Discovery, TermColumns, inputs_of
+from ewb_ident.diagnosis.discovery import (
+    Discovery,
+    TermColumns,
+    equation_of,
+    inputs_of,
+)
 from ewb_ident.diagnosis.inputs import (
     Column,
     Signal,
@@ -22,7 +27,6 @@ from ewb_ident.diagnosis.inputs import (
     product_of,
     stacked,
 )
-from ewb_ident.diagnosis.places import equation_of
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import motor_fine
 from ewb_ident.model.params import MODEL_PARAMS, EWBParams

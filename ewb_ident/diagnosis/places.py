@@ -14,10 +14,9 @@ from scipy.stats import rankdata
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
 from ewb_ident.diagnosis.filters import denoised, fft_convolve_columns
-from ewb_ident.diagnosis.heldout import Design, linearised_start
-from ewb_ident.diagnosis.inputs import Column, Signal, periodic, render, render_pair, sensor_signal
+from ewb_ident.diagnosis.inputs import Signal, periodic, sensor_signal
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
-from ewb_ident.model.integrate import motor_fine, zoh_exact
+from ewb_ident.model.integrate import zoh_exact
 from ewb_ident.model.physics import DEG_PER_RAD, motor_matrices
 
 
@@ -272,45 +271,6 @@ def is_local(group: str, local: Sequence[str]) -> bool:
     if name.endswith("_rate"):
         return name in local
     return any(name == s or name.startswith(s + "_") for s in local if s)
-
-
-def equation_of(
-    place: str,
-    terms: Sequence[Sequence[Column]],
-    coef: Sequence[float],
-    signals: Mapping[str, Signal],
-) -> str:
-    """A term's equation in SI units, ``quantity = expression [unit]`` (a sine and
-    cosine pair as one harmonic)."""
-    coef = list(coef)
-    info = PLACES[place]
-    parts, k = [], 0
-    for t in terms:
-        cs = coef[k : k + len(t)]
-        k += len(t)
-        parts.append(render_pair(t, cs, signals) if len(t) == 2 else render(t[0], cs[0], signals))
-    expr = " ".join(parts).lstrip("+")
-    return f"{info.quantity} = {expr} [{info.unit}]"
-
-
-def motor_with_term(ses, fit, place: str, d: Design, cols, idx) -> dict | None:
-    """The motor's states (:func:`~ewb_ident.model.integrate.motor_fine`) with a term
-    learned at a motor ``place`` inside, from its linearised problem ``d`` (the basis
-    columns ``cols``, of which the term's are ``idx``), and the stage's parameters it
-    refits: a second pass learns from the motor the term corrects, not the baseline's (a
-    current the model computes without a torque constant that saturates). ``None`` where
-    the linearised step leaves the motor's range (a motor it makes unstable)."""
-    _, x = d.insample(idx, d.best_heldout(idx)[1])
-    n = ses.trace.n
-    U = np.stack([np.ones(n) if cols[j].values is None else cols[j].values for j in idx], 1)
-    term = U @ (x[d.kb :] / d.norms[idx])
-    values = dict(fit.values) | linearised_start(fit, x[: d.kb])
-    key = "voltage" if place == "motor.electrical" else "load"
-    with np.errstate(all="ignore"):
-        fine = motor_fine(values, ses.trace, **{key: term})
-    base = motor_fine(fit.values, ses.trace)
-    far = any(not np.all(np.abs(fine[k]) <= 10 * np.max(np.abs(base[k]))) for k in base)
-    return None if far else fine
 
 
 #: Spearman's rank correlation from which two signals are one monotone function of the

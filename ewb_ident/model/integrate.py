@@ -396,29 +396,18 @@ def warn_if_heun_unstable(params: EWBParams, h: float) -> None:
 FINE_STEP_S = 2.5e-4
 
 
-def motor_fine(
-    values: Mapping[str, float],
-    trace,
-    voltage: np.ndarray | None = None,
-    load: np.ndarray | None = None,
-) -> dict[str, np.ndarray]:
+def motor_fine(values: Mapping[str, float], trace) -> dict[str, np.ndarray]:
     """The motor model's states within each sample interval from the logged voltage
     (the fit's parameters ``values``; exact zero-order-hold flow at sub-steps of at most
     :data:`FINE_STEP_S`): ``current`` (A), ``speed`` (rad/s), ``angle`` (deg), each of
     shape (n, m + 1), the interval's start and end included. At the sample times they
-    are the motor stage's own prediction. ``voltage`` (V) and ``load`` (N*m, opposing
-    motion when positive), per sample and held over its interval, are added to the
-    terminal voltage and the load torque (a learned term's, inside the motor)."""
+    are the motor stage's own prediction."""
     dt, n = trace.dt, trace.n
     m = max(1, int(np.ceil(dt / FINE_STEP_S - 1e-9)))
-    A, B_V, B_tau = motor_matrices(
-        *(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")), np
-    )
-    Ad, bd = zoh_exact(A, np.stack([B_V, B_tau], axis=1), dt / m)
-    # Each sample's input held over its interval: the voltage and the load torque.
-    U = np.stack([trace["voltage_V"], np.zeros(n)], axis=1)
-    U[:, 0] += 0.0 if voltage is None else np.asarray(voltage, float)[:n]
-    U[:, 1] += 0.0 if load is None else np.asarray(load, float)[:n]
+    A, B_V, _ = motor_matrices(*(float(values[k]) for k in ("R", "L", "kb", "kT", "M", "v")), np)
+    Ad, bd = zoh_exact(A, B_V, dt / m)
+    bd = bd[:, 0]
+    V = trace["voltage_V"]
     # The flow over a whole sample, then each sub-step from the sample's start state.
     Am = np.linalg.matrix_power(Ad, m)
     bm = sum(np.linalg.matrix_power(Ad, j) @ bd for j in range(m))
@@ -426,11 +415,11 @@ def motor_fine(
     x = np.array([0.0, 0.0, float(values.get("theta0_deg", 0.0)) / DEG_PER_RAD])
     for k in range(n):
         starts[k] = x
-        x = Am @ x + bm @ U[k]
+        x = Am @ x + bm * V[k]
     out = np.empty((n, m + 1, 3))
     S = starts
     out[:, 0] = S
     for j in range(1, m + 1):
-        S = S @ Ad.T + U @ bd.T
+        S = S @ Ad.T + bd[None, :] * V[:, None]
         out[:, j] = S
     return {"current": out[..., 0], "speed": out[..., 1], "angle": out[..., 2] * DEG_PER_RAD}
