@@ -265,51 +265,6 @@ def test_unknown_physics_is_not_forced_into_a_catalog_name():
     assert top.heldout["excess_share"] >= 0.5
 
 
-def test_two_fits_that_predict_alike_within_the_noise_are_one_explanation():
-    """The gap between two fits' predictions is the RMS of their difference over the
-    channel's white-noise level, the largest over the channels asked for."""
-    from types import SimpleNamespace
-
-    from ewb_ident.diagnosis.session import prediction_gap
-
-    rng = np.random.default_rng(5)
-    t = np.linspace(0.0, 3.0, 3000)
-    noise = 0.02 * rng.standard_normal(t.size)
-    sigma = {"torque_Nm": np.full(t.size, 0.02), "force_N": np.full(t.size, 5.0)}
-
-    def fit(torque_shift, force_shift=0.0):
-        r = {
-            "torque_Nm": noise + torque_shift * np.sin(t),
-            "force_N": 5.0 * noise / 0.02 + force_shift,
-        }
-        return SimpleNamespace(residuals=[r])
-
-    f0 = fit(0.0)
-    half = prediction_gap(fit(0.01 * np.sqrt(2)), f0, sigma, ["torque_Nm"])
-    assert half == pytest.approx(0.5, rel=0.1)  # (the white-noise level of the draw)
-    assert prediction_gap(fit(0.04 * np.sqrt(2)), f0, sigma, ["torque_Nm"]) > 1.0
-    # The largest over the channels asked for, and only those.
-    assert prediction_gap(fit(0.0, 10.0), f0, sigma, ["torque_Nm", "force_N"]) > 1.5
-    assert prediction_gap(fit(0.0, 10.0), f0, sigma, ["torque_Nm"]) == 0.0
-
-
-@pytest.mark.slow
-def test_a_fade_a_learned_term_rediscovers_keeps_its_catalog_name():
-    """A friction fade through a thermal lag at 22x the noise (widened accuracy study,
-    no current sensor): the learned term `ΔT = k·F·E` at the brake torque fitted the
-    stage better than `friction_fade` by dBIC -10.9, past the threshold, while the two
-    predict the torque within a quarter of its noise of each other: one physics, which
-    the catalog names with its parameters; it was reported as the learned term."""
-    from studies import diagnosis_accuracy as da
-
-    kind, ids = da.case_plan()[65]
-    assert ids == ("friction_fade",)
-    trace, *_ = da.make_case(65, ids, seed=20261363, widen=True)
-    res = diagnose(trace)
-    assert res.verdict == "found" and res.findings[0].effect == "friction_fade"
-    assert any("the same physics, named by the catalog" in n for n in res.notes)
-
-
 def test_a_trace_without_any_stage_is_refused():
     t = np.arange(100) / 200.0
     trace = Trace(name="bare", time_s=t, channels={"voltage_V": np.zeros(100)})

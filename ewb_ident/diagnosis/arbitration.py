@@ -8,9 +8,7 @@ explain a stage, the catalog name is kept only when the data ask for it:
   least as much of the excess residual there as the best learned term does on held-out
   data (less :data:`~ewb_ident.diagnosis.discovery.CATALOG_MARGIN`), and the learned
   term fitted through the model in their place must not fit the stage better by the
-  evidence threshold, unless it predicts the stage as they do to within the noise
-  (:func:`~ewb_ident.diagnosis.session.prediction_gap`: the same physics, which the
-  catalog names with its parameters);
+  evidence threshold;
 * :func:`one_explanation`: when a learned term is still needed on top of a catalog
   mechanism at its stage, the mechanism must also earn its place on top of a learned
   term fitted without it: the stage's fit with both must beat the learned term alone by
@@ -30,7 +28,7 @@ from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, discover
 from ewb_ident.diagnosis.findings import closure, fit_learned
 from ewb_ident.diagnosis.result import Candidate
-from ewb_ident.diagnosis.session import Session, bic_evidence, prediction_gap
+from ewb_ident.diagnosis.session import Session, bic_evidence
 
 
 def fits_of(ses: Session, selected):
@@ -65,10 +63,8 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
     (less :data:`CATALOG_MARGIN`), and the learned term fitted through the model in
     their place does not fit the stage better by ``threshold`` in BIC (the share is
     judged on the stage's channels together, where one channel's large mismatch can
-    hide another's that the mechanism leaves) or predicts the stage as they do to within
-    the noise (the learned term is then their physics, rediscovered: a fade learned as
-    ``ΔT = k·F·E``). Otherwise they are dropped, the stage goes to discovery, and the
-    catalog names become the learned term's rivals."""
+    hide another's that the mechanism leaves). Otherwise they are dropped, the stage
+    goes to discovery, and the catalog names become the learned term's rivals."""
     for stage in dict.fromkeys(m.stage for m in work.selected):
         at = [m for m in work.selected if m.stage == stage]
         others = [m for m in work.selected if m.stage != stage]
@@ -93,14 +89,6 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
                 continue
             gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
             if gain > -threshold:
-                continue
-            gap = prediction_gap(res[0], with_all, ses.sigma_tf, own)
-            if gap < 1.0:  # one physics, the catalog's: its name and parameters stay
-                work.notes.append(
-                    f"{names}: a learned term at {disc.place} fits its stages better "
-                    f"(dBIC {gain:+.1f}) but predicts them as {names} does, to "
-                    f"{gap:.2f}x the noise: the same physics, named by the catalog"
-                )
                 continue
             why = (
                 f"a learned term at {disc.place} in its place fits its stages better than "

@@ -409,21 +409,6 @@ def bic_evidence(
     }
 
 
-def prediction_gap(
-    f1: FitResult, f0: FitResult, sigma: Mapping[str, np.ndarray], own: Sequence[str]
-) -> float:
-    """How far apart two fits of the same stages predict the channels ``own``: the
-    largest, over those channels, of the RMS of the difference of their predictions over
-    the channel's white-noise level (as :func:`bic_evidence` takes it). Below 1, the two
-    explanations predict the recording alike to within its noise."""
-    gap = 0.0
-    for ch in (c for c in own if c in f0.residuals[0] and c in f1.residuals[0]):
-        e0, e1 = (np.asarray(f.residuals[0][ch], float) / sigma[ch] for f in (f0, f1))
-        level = float(np.clip(noise_sigma(e0), *FLOOR_SCALE))
-        gap = max(gap, float(np.sqrt(np.mean((e1 - e0) ** 2))) / level)
-    return gap
-
-
 def _lag1(f: FitResult, sigma: Mapping[str, np.ndarray]) -> float:
     """Pooled lag-1 autocorrelation of ``f``'s weighted residuals, clipped to
     ``[0, RHO_MAX]``."""
