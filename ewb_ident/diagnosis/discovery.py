@@ -374,8 +374,8 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=N
         ]
         if near and not is_local(best[1], local):
             best = min(near)
-        twin = [t for t in tried if t[1] == monotone_twin(sig or {}, best[1], local)]
-        if twin:  # the same function of the same motion, read on the local signal
+        twin_of = monotone_twin(sig or {}, best[1], local)  # once, not per input tried
+        if twin := [t for t in tried if t[1] == twin_of]:  # the same function, read locally
             ties, best = [*ties, best[1]], twin[0]
         gain = cur - best[0]
         if gain < MIN_STEP_SHARE * max(excess, 1e-300):
