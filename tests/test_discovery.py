@@ -268,7 +268,8 @@ def test_a_signal_that_is_a_monotone_function_of_a_local_one_is_read_as_it():
     bell's centre the force is a function of it: a learned function of one is one of the
     other, so at the displacement sensor the angle is read as the displacement. A force
     that passes the bell's centre is no function of the displacement, and an energy that
-    only grows is a clock, no twin of anything."""
+    only grows is a clock, no twin of anything. A history of a local signal is local
+    itself: it is kept, not read as the level it follows."""
     t = np.linspace(0.0, 3.0, 1500)
     angle = 400.0 * np.sin(np.pi * t / 1.5) ** 2  # two applies, deg
     x = 3.8e-9 * angle**2 + 1.5e-6 * angle - 0.00084
@@ -282,6 +283,8 @@ def test_a_signal_that_is_a_monotone_function_of_a_local_one_is_read_as_it():
     assert [twin(sig, n, ("force", "angle")) for n in sig] == [None, "force", None, None, None]
     noisy = dict(sig, angle=dataclasses.replace(sig["angle"], values=angle + 5.0 * np.sin(40 * t)))
     assert twin(noisy, "angle", ("x",)) is None
+    lagged = dict(sig, force_history_0_1s=dataclasses.replace(sig["force"], name="h"))
+    assert twin(lagged, "force_history_0_1s", ("force", "force_history")) is None
 
 
 @pytest.mark.parametrize("rate, freq, amp", [(200.0, 50.0, 1.5), (100.0, 60.0, 1.0)])

@@ -282,10 +282,11 @@ MONOTONE = 0.999
 def monotone_twin(signals: Mapping[str, Signal], name: str, local: Sequence[str]) -> str | None:
     """The first signal of ``local`` that is a monotone function of the signal ``name``
     over the trace (:data:`MONOTONE`, ties ranked alike), if ``name`` is not local
-    itself: a learned function of one is a function of the other, and the trace cannot
-    tell which it is; the signal local to the place is the reading. ``None`` for a signal
-    that only grows with time (an energy, a distance): clocks are all in the same order,
-    and the trace tells them apart by their shapes."""
+    itself nor a history of a local signal (:func:`is_local`): a learned function of
+    one is a function of the other, and the trace cannot tell which it is; the signal
+    local to the place is the reading. ``None`` for a signal that only grows with time
+    (an energy, a distance): clocks are all in the same order, and the trace tells them
+    apart by their shapes."""
 
     def ranks(v: np.ndarray) -> np.ndarray | None:
         if not (np.all(np.isfinite(v)) and np.ptp(v) > 0):
@@ -293,7 +294,7 @@ def monotone_twin(signals: Mapping[str, Signal], name: str, local: Sequence[str]
         r = rankdata(v) - (v.size + 1) / 2.0
         return r / float(np.linalg.norm(r))
 
-    own = ranks(signals[name].values) if name in signals and name not in local else None
+    own = ranks(signals[name].values) if name in signals and not is_local(name, local) else None
     if own is None or abs(own @ ranks(np.arange(float(own.size)))) >= MONOTONE:
         return None
     twins = (lo for lo in local if lo in signals and (r := ranks(signals[lo].values)) is not None
