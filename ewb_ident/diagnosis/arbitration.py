@@ -12,8 +12,10 @@ explain a stage, the catalog name is kept only when the data ask for it:
 * :func:`one_explanation`: when a learned term is still needed on top of a catalog
   mechanism at its stage, the mechanism must also earn its place on top of a learned
   term fitted without it: the stage's fit with both must beat the learned term alone by
-  the evidence threshold (``dBIC <= -threshold``, the rule every finding passes).
-  Otherwise one explanation (the learned term) does what two claim to.
+  the evidence threshold (``dBIC <= -threshold``, the rule every finding passes), and
+  predict held-out data better than it (the pair's catalog parameters are fitted on
+  every fold, which can only favour the pair). Otherwise one explanation (the learned
+  term) does what two claim to.
 
 Both compare fits of the same stages and weights; a dropped catalog name becomes a rival
 the finding lists.
@@ -101,8 +103,9 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
 
 def one_explanation(ses: Session, work: Any, threshold: float) -> None:
     """A catalog mechanism under a learned term at its stages must beat, together with
-    that term, a learned term fitted without it by ``threshold`` in BIC; otherwise it is
-    dropped and the learned term fitted without it takes the discovery's place."""
+    that term, a learned term fitted without it by ``threshold`` in BIC and on held-out
+    data (the learned terms' held-out residuals); otherwise it is dropped and the
+    learned term fitted without it takes the discovery's place."""
     for k, (disc, f_both, _, _) in enumerate(list(work.discoveries)):
         at = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(f_both.stages)]
         if not at:
@@ -115,13 +118,22 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
         if res is None or res[0].stages != f_both.stages:
             continue
         gain = bic_evidence(f_both, res[0], ses.sigma_tf)["delta_bic"]
-        if gain <= -threshold:
+        pair, one = disc.learned.heldout_after, alone.learned.heldout_after
+        names = ", ".join(m.variant for m in at)
+        if gain > -threshold:
+            why = (
+                f"a learned term at {alone.place} alone fits its stages as well as "
+                f"{names} with a learned term on top "
+                f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
+            )
+        elif one <= pair:
+            why = (
+                f"a learned term at {alone.place} alone predicts held-out data as well as "
+                f"{names} with a learned term on top (held-out residual "
+                f"{one / pair:.2f} of the pair's)"
+            )
+        else:
             continue
-        why = (
-            f"a learned term at {alone.place} alone fits its stages as well as "
-            f"{', '.join(m.variant for m in at)} with a learned term on top "
-            f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
-        )
         _drop(work, disc.stage, at, why)
         work.discoveries[k] = (alone, *res)
         for st in res[0].stages:
