@@ -21,7 +21,8 @@ Scoring (decided before the first run; nothing here set a threshold of the tool)
   mu r_eff times the force, a low-passed history is its signal's: a force history the
   force's, as its integral is, the low-passed squared current the heat; the count of the
   motion's reversals and the travel since one are the direction's, added with those
-  inputs after the second probe's runs); reported beside it, not
+  inputs after the second probe's runs; the largest force so far is the force's, added
+  with that input after the third probe's blind run); reported beside it, not
   as the target (added after the run on seed 20261303, which it reran unchanged
   otherwise): the same, counting also the signals the finding names as ones the trace
   cannot tell from its own (``depends_on_equivalent``);
@@ -91,7 +92,7 @@ SAME: dict[str, set[str]] = {
     "angle": {"angle"},
     "x": {"x"},
     "x_rate": {"x_rate"},
-    "force": {"force", "force_history", "force_integral"},
+    "force": {"force", "force_history", "force_integral", "force_peak"},
     "force_rate": {"force_rate", "force"},
     "torque": {"torque", "force"},
     "torque_rate": {"torque_rate", "torque", "force_rate"},

@@ -766,6 +766,27 @@ def test_a_force_reading_that_drifts_with_the_force_integral_is_learned_so():
     assert top.heldout["excess_share"] >= 0.8
 
 
+SET_PER_N = 0.02  # a load cell taking a set: its zero shifts with the largest load so far
+
+
+def test_a_change_that_grows_at_each_new_force_record_is_learned_on_the_force_peak():
+    """Physics that changes for good only when the load sets a new record (a pad bedding
+    in, a plastic set; here a load cell whose zero shifts with its largest load): the
+    largest force so far is an input, and the term is learned on it with the planted
+    coefficient (a low-passed force fitted it only with a seven-per-cent error)."""
+    trace, run, _ = _clean()
+    F = np.asarray(run.states["force_N"])
+    truth = SET_PER_N * np.maximum.accumulate(F)
+    res = diagnose(_with({"force_N": F + truth}, "set"))
+    assert res.verdict == "unexplained" and not any(f.catalog for f in res.findings)
+    (top,) = res.findings
+    assert top.place == "sensor.force_N" and top.depends_on == ("force_peak",)
+    (term,) = top.terms
+    assert term["coef"] == pytest.approx(SET_PER_N, rel=0.05)
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.02 * np.sqrt(np.mean(truth**2))
+    assert "new record" in top.reading
+
+
 def test_folds_leave_out_whole_applies_only_when_none_holds_most_of_the_trace():
     apply = ["gapping"] * 20 + ["clamping"] * 30 + ["release"] * 10
     idx, method = heldout.folds(np.array(apply * 3 + ["gapping"] * 20))

@@ -175,6 +175,10 @@ def input_signals(
             hist = f"the force low-passed over {tau:g} s (its recent history)"
             add(f"force_history_{tau:g}s", _lowpass(y, dt, tau), "N", "level", hist, f"F̄{tau:g}s")
         add("force_integral", _integral(y, dt), "N*s", "level", "the force's integral", "∫Fdt")
+        # What changes for good at each new record of the load (a pad bedding in, a
+        # plastic set, a seal seating): the largest force so far.
+        peak = np.maximum.accumulate(out["force"].values) if "force" in out else None
+        add("force_peak", peak, "N", "level", "the largest force so far", "F̂")
     if trace.has("disc_speed_rad_s"):
         wd = trace["disc_speed_rad_s"]
         if np.ptp(wd) > 0.02 * max(float(np.max(np.abs(wd))), 1e-9):

@@ -128,6 +128,12 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
     ),
     (
         "",
+        "force_peak",
+        "a change that grows only when the force sets a new record: a permanent set "
+        "(pads bedding in, a plastic deformation, a seal seating)",
+    ),
+    (
+        "",
         "reversals",
         "a change that steps at each reversal of the motion: a slip, or a loss or wear per stroke",
     ),
