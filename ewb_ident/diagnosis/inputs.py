@@ -175,10 +175,8 @@ def input_signals(
             hist = f"the force low-passed over {tau:g} s (its recent history)"
             add(f"force_history_{tau:g}s", _lowpass(y, dt, tau), "N", "level", hist, f"F̄{tau:g}s")
         add("force_integral", _integral(y, dt), "N*s", "level", "the force's integral", "∫Fdt")
-        # What changes for good at each new record of the load (a pad bedding in, a
-        # plastic set, a seal seating): the largest force so far.
-        peak = np.maximum.accumulate(out["force"].values) if "force" in out else None
-        add("force_peak", peak, "N", "level", "the largest force so far", "F̂")
+        peak = np.maximum.accumulate(out["force"].values) if "force" in out else np.zeros(n)
+        add("force_peak", peak, "N", "level", "the largest force so far", "F̂")  # pads that set
     if trace.has("disc_speed_rad_s"):
         wd = trace["disc_speed_rad_s"]
         if np.ptp(wd) > 0.02 * max(float(np.max(np.abs(wd))), 1e-9):
@@ -260,10 +258,8 @@ def sensor_signal(place: str) -> str:
 
 def carriers_of(place: str) -> tuple[str, ...]:
     """The carriers of a place (a sensor's: its own signal)."""
-    if place.startswith("sensor."):
-        own = sensor_signal(place)
-        return (own,) if own else ()
-    return CARRIERS.get(place, ())
+    own = sensor_signal(place)
+    return ((own,) if own else ()) if place.startswith("sensor.") else CARRIERS.get(place, ())
 
 
 TRIG = {"sin": np.sin, "cos": np.cos}
