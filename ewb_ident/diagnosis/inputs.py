@@ -258,8 +258,8 @@ def sensor_signal(place: str) -> str:
 
 def carriers_of(place: str) -> tuple[str, ...]:
     """The carriers of a place (a sensor's: its own signal)."""
-    own = sensor_signal(place)
-    return ((own,) if own else ()) if place.startswith("sensor.") else CARRIERS.get(place, ())
+    own = sensor_signal(place)  # "" for a place that is not a sensor's
+    return (own,) if own else CARRIERS.get(place, ())
 
 
 TRIG = {"sin": np.sin, "cos": np.cos}
