@@ -581,19 +581,29 @@ def test_the_filters_equal_scipy_signals():
 @pytest.mark.slow
 def test_an_armature_that_heats_and_cools_is_learned_on_its_thermal_state(tmp_path):
     """Armature heating on an independent rig, R = R0 (1 + h) with h the squared current
-    through a 0.5 s thermal lag (no catalog mechanism): the learned term acts in the
+    through a 0.5 s thermal lag (no catalog mechanism). Where the current sensor reads the
+    current well above its noise (500 Hz, RMS 12x the noise), the learned term acts in the
     motor's electrical equation, depends on the current times the squared current
-    low-passed with the planted time constant, and generalises."""
+    low-passed with the planted time constant, and generalises. Where the current is at
+    its noise level (100 Hz, RMS 1.4x), a resistance that rises and a torque constant that
+    falls move the angle alike: either motor equation may carry the term, and the finding
+    says that the other explains it about as well."""
     from ewb_ident.data.readers import read_trace
     from validation_rigs import uncatalogued_rig as ur
 
-    case = ur.make_case("armature_heating", "a", 7, 2)
-    assert case.truth["params"]["effect"]["tau_th"] == 0.5
-    res = diagnose(read_trace(ur.write_case(case, tmp_path, "heating")))
-    (top,) = [f for f in res.findings if f.place]
-    assert top.place == "motor.electrical"
-    assert set(top.depends_on) == {"current", "heat_history_0.5s"}
-    assert top.heldout["excess_share"] >= 0.5
+    for seed, idx, told in ((9, 8, True), (7, 2, False)):
+        case = ur.make_case("armature_heating", "a", seed, idx)
+        assert case.truth["params"]["effect"]["tau_th"] == 0.5 and case.truth["has_current"]
+        res = diagnose(read_trace(ur.write_case(case, tmp_path, f"heating{seed}")))
+        (top,) = [f for f in res.findings if f.place]
+        assert set(top.depends_on) == {"current", "heat_history_0.5s"}
+        assert top.heldout["excess_share"] >= 0.5
+        if told:
+            assert top.place == "motor.electrical"
+        else:
+            assert top.place in ("motor.electrical", "motor.mechanical")
+            other = ({"motor.electrical", "motor.mechanical"} - {top.place}).pop()
+            assert f"{other} (on" in top.explanation and "the trace cannot tell" in top.explanation
 
 
 @pytest.mark.slow
