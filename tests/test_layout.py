@@ -30,7 +30,7 @@ LAYERS = [
 MAX_LINES = 600
 OVER = {
     "ewb_ident.diagnosis.discovery": 688,
-    "ewb_ident.diagnosis.diagnose": 808,
+    "ewb_ident.diagnosis.diagnose": 803,
     "ewb_ident.study": 718,
     "ewb_ident.reporting.html": 629,
     "ewb_ident.rig.simulate": 664,

@@ -18,7 +18,9 @@ explain a stage, the catalog name is kept only when the data ask for it:
   term) does what two claim to.
 
 Both compare fits of the same stages and weights; a dropped catalog name becomes a rival
-the finding lists.
+the finding lists. :func:`promote` selects a held-back catalog rival in place of a
+learned term that explains little more; :func:`best_search` chooses among catalog
+searches run again with the names the whole chain did not confirm set aside.
 """
 
 from __future__ import annotations
@@ -138,3 +140,46 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
         work.discoveries[k] = (alone, *res)
         for st in res[0].stages:
             work.current[st] = res[0]
+
+
+def promote(work, rival: tuple, generic_ev: dict[str, float]) -> None:
+    """Select a held-back catalog rival in place of a discovered term."""
+    cand, f1, ev1, mech = rival
+    note = (
+        f"explains {100 * cand.explained:.0f} % of the excess residual, "
+        f"{100 * cand.delta_chi2 / generic_ev['delta_chi2']:.0f} % of what a learned term "
+        "at its stage removes"
+    )
+    k = next(i for i, c in enumerate(work.candidates) if c is cand)
+    work.candidates[k] = Candidate(**{**cand.__dict__, "selected": True, "rejected": ""})
+    # One rival per stage set: a second located stage with the same stages must not
+    # promote it again nor add another rival for the mismatch it explains.
+    work.last_round = [r for r in work.last_round if r[1].stages != f1.stages]
+    work.selected.append(mech)
+    work.evidence[mech.variant] = ev1 | {"generic_delta_chi2": generic_ev["delta_chi2"]}
+    work.notes.append(f"{mech.variant}: {note}")
+    for st in f1.stages:
+        work.current[st] = f1
+
+
+def best_search(chains: Sequence[Any], chain: Any) -> int:
+    """Of the catalog searches (each with the names the whole chain did not confirm set
+    aside), the one whose findings fit the whole chain best (dBIC against the chain's
+    baseline ``chain.fits[0]``); the first when they tie or there is no chain."""
+    if not chain.ok or len(chains) == 1:
+        return 0
+    dbic = [bic_evidence(c.fits[-1], chain.fits[0], chain.sigma)["delta_bic"] for c in chains]
+    return min(range(len(chains)), key=lambda k: (dbic[k], k))
+
+
+def set_aside_records(earlier: Sequence[Any], unconfirmed, bic_threshold: float) -> list:
+    """The candidate records of the names the searches before the one kept (``earlier``)
+    selected and the whole chain did not confirm (``unconfirmed``: (mechanism, chain
+    evidence) pairs), marked as set aside."""
+    aside = {m.variant: ev for m, ev in unconfirmed}
+    why = "not confirmed by the whole chain from the voltage (dBIC {:.1f} > -{:g})"
+    return [
+        Candidate(**{**c.__dict__, "selected": False,
+                     "rejected": why.format(aside[c.variant]["delta_bic"], bic_threshold)})
+        for w in earlier for c in w.candidates if c.selected and c.variant in aside
+    ]  # fmt: skip

@@ -63,7 +63,14 @@ from ewb_ident.data.metrics import channel_metrics
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.validation import check_trace
-from ewb_ident.diagnosis.arbitration import fits_of, one_explanation, second_opinion
+from ewb_ident.diagnosis.arbitration import (
+    best_search,
+    fits_of,
+    one_explanation,
+    promote,
+    second_opinion,
+    set_aside_records,
+)
 from ewb_ident.diagnosis.artefacts import find_artefacts
 from ewb_ident.diagnosis.corrected import (
     corrected_of,
@@ -178,8 +185,8 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
     timings: dict[str, float] = {}
 
     def lap(step: str) -> None:  # (a step run again adds to its time)
-        timings[step] = timings.pop(step, 0.0) + time.perf_counter() - t_start - sum(
-            timings.values()
+        timings[step] = (
+            timings.pop(step, 0.0) + time.perf_counter() - t_start - sum(timings.values())
         )
 
     pool = _catalog_pool(catalog)
@@ -229,15 +236,9 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         set_aside += new
         ses.values = dict(start)
         say("searching the catalog again without " + ", ".join(m.variant for m, _ in new))
-    k = _best_pass([p[1] for p in passes], chain)
+    k = best_search([p[1] for p in passes], chain)
     work, chain, added, chain_ev, unconfirmed, ses.values = passes[k]
-    aside = {m.variant: ev for m, ev in unconfirmed}
-    work.candidates[:0] = [  # the names set aside before the search kept
-        Candidate(**{**c.__dict__, "selected": False, "rejected": (
-            f"not confirmed by the whole chain from the voltage (dBIC "
-            f"{aside[c.variant]['delta_bic']:.1f} > -{bic_threshold:g})")})
-        for w, *_ in passes[:k] for c in w.candidates if c.selected and c.variant in aside
-    ]  # fmt: skip
+    work.candidates[:0] = set_aside_records([p[0] for p in passes[:k]], unconfirmed, bic_threshold)
     located = flagged + _screened_cells(cells, added, flagged, work)
     checks_after = {
         (c.stage, c.channel): c for s in ses.stages for c in ses.check(s, work.current[s])
@@ -364,16 +365,6 @@ class _Work:
     #: Catalog names a discovered term at their stage outdid on held-out data.
     rivals: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
-
-
-def _best_pass(chains: list[_Chain], chain: _Chain) -> int:
-    """Of the catalog searches (each with the names the whole chain did not confirm
-    set aside), the one whose findings fit the whole chain best (its dBIC against the
-    chain's baseline); the first when they tie or there is no chain."""
-    if not chain.ok or len(chains) == 1:
-        return 0
-    dbic = [bic_evidence(c.fits[-1], chain.fits[0], chain.sigma)["delta_bic"] for c in chains]
-    return min(range(len(chains)), key=lambda k: (dbic[k], k))
 
 
 def _explain(ses, pool, located, bic_threshold, max_mechanisms, say) -> _Work:
@@ -636,32 +627,12 @@ def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float)
             and r[2]["delta_chi2"] >= CATALOG_SHARE * ev["delta_chi2"]
         ]
         if rivals and s not in work.rivals:
-            _promote(work, min(rivals, key=lambda r: r[0].delta_bic), ev)
+            promote(work, min(rivals, key=lambda r: r[0].delta_bic), ev)
             continue
         work.discoveries.append((disc, f_new, ev, term))
         for st in f_new.stages:
             work.current[st] = f_new
             done.add(st)
-
-
-def _promote(work: _Work, rival: _Tried, generic_ev: dict[str, float]) -> None:
-    """Select a held-back catalog rival in place of a discovered term."""
-    cand, f1, ev1, mech = rival
-    note = (
-        f"explains {100 * cand.explained:.0f} % of the excess residual, "
-        f"{100 * cand.delta_chi2 / generic_ev['delta_chi2']:.0f} % of what a learned term "
-        "at its stage removes"
-    )
-    k = next(i for i, c in enumerate(work.candidates) if c is cand)
-    work.candidates[k] = Candidate(**{**cand.__dict__, "selected": True, "rejected": ""})
-    # One rival per stage set: a second located stage with the same stages must not
-    # promote it again nor add another rival for the mismatch it explains.
-    work.last_round = [r for r in work.last_round if r[1].stages != f1.stages]
-    work.selected.append(mech)
-    work.evidence[mech.variant] = ev1 | {"generic_delta_chi2": generic_ev["delta_chi2"]}
-    work.notes.append(f"{mech.variant}: {note}")
-    for st in f1.stages:
-        work.current[st] = f1
 
 
 def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
