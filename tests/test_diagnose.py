@@ -394,7 +394,11 @@ def test_a_rival_is_promoted_once_per_stage_set():
     1 kHz staircase) raised StopIteration: two located stages promoted the same held-back
     catalog rival, the second time after the first had replaced it in the list. Now
     one rival per stage set: both planted effects are named and no other catalog effect
-    (a generic correction may remain at the force stage)."""
+    (a generic correction may remain at the force stage).
+    Later a force-sensor delay took the second round (it absorbed what noise on the
+    measured displacement does to the force stage) and held friction_speed back; the
+    whole chain did not confirm it, and friction_speed was never tried again. A name
+    the chain does not confirm is now set aside and the catalog searched again."""
     from studies import diagnosis_accuracy
 
     trace, *_ = diagnosis_accuracy.make_case(
@@ -402,6 +406,9 @@ def test_a_rival_is_promoted_once_per_stage_set():
     )
     res = diagnose(trace)
     assert sorted(f.effect for f in res.findings if f.catalog) == ["backlash", "friction_speed"]
+    (aside,) = [c for c in res.candidates if c.variant == "sensor_delay[force_N]" and c.round == 2]
+    assert not aside.selected and aside.rejected.startswith("not confirmed by the whole chain")
+    assert any(n.startswith("sensor_delay[force_N] improved the force stage") for n in res.notes)
 
 
 def test_a_coarsely_rounded_channel_is_judged_on_its_rounding_error():
