@@ -15,7 +15,10 @@ explain a stage, the catalog name is kept only when the data ask for it:
   the evidence threshold (``dBIC <= -threshold``, the rule every finding passes), and
   predict held-out data better than it (the pair's catalog parameters are fitted on
   every fold, which can only favour the pair). Otherwise one explanation (the learned
-  term) does what two claim to.
+  term) does what two claim to. Where the term alone acts at other stages than the
+  pair (a motor load torque against an angle sensor's term), both are fitted on the
+  stages of either and compared in BIC alone (held-out residuals of terms at different
+  places are not comparable).
 
 Both compare fits of the same stages and weights; a dropped catalog name becomes a rival
 the finding lists. :func:`promote` selects a held-back catalog rival in place of a
@@ -30,9 +33,10 @@ from typing import Any
 
 from ewb_ident.data.stages import STAGE_OUTPUTS
 from ewb_ident.diagnosis.discovery import CATALOG_MARGIN, discover
-from ewb_ident.diagnosis.findings import closure, fit_learned
+from ewb_ident.diagnosis.findings import closure, fit_learned, learned_data
 from ewb_ident.diagnosis.result import Candidate
-from ewb_ident.diagnosis.session import Session, bic_evidence
+from ewb_ident.diagnosis.session import Session, bic_evidence, stage_order
+from ewb_ident.inference.augmented import fit_mechanisms
 
 
 def fits_of(ses: Session, selected):
@@ -103,6 +107,20 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
             work.current[st] = fits_of(ses, work.selected)((st,))
 
 
+def _on(ses: Session, T: Sequence[str], fitted, disc, others) -> Any:
+    """A fit of the stages ``T`` from ``fitted`` (a fit of some of them with a learned
+    term at ``disc``'s place, whose basis it takes), with the mechanisms ``others`` of
+    the stages ``fitted`` did not cover."""
+    extra = [m for m in others if set(ses.mechanism_stages(m)) & (set(T) - set(fitted.stages))]
+    mechs = (*fitted.mechanisms, *extra)
+    free = ses.free_of(T)
+    return fit_mechanisms(
+        learned_data(ses.data, [disc]), T, free, mechs, ses.channels_of(T),
+        start={n: fitted.values.get(n, ses.values[n]) for n in free},
+        explore=[False] * len(mechs),
+    )  # fmt: skip
+
+
 def one_explanation(ses: Session, work: Any, threshold: float) -> None:
     """A catalog mechanism under a learned term at its stages must beat, together with
     that term, a learned term fitted without it by ``threshold`` in BIC and on held-out
@@ -117,9 +135,17 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
         if alone is None or not alone.learned.groups or not alone.distilled.generalises:
             continue
         res = fit_learned(ses, alone, others, threshold)
-        if res is None or res[0].stages != f_both.stages:
+        if res is None:
             continue
-        gain = bic_evidence(f_both, res[0], ses.sigma_tf)["delta_bic"]
+        # Where the term alone acts at other stages, both on the stages of either (the
+        # held-out residuals of terms at different places are not comparable).
+        same = res[0].stages == f_both.stages
+        T = stage_order(set(res[0].stages) | set(f_both.stages))
+        gain = bic_evidence(
+            *((f_both, res[0]) if same else (_on(ses, T, f_both, disc, others),
+                                             _on(ses, T, res[0], alone, others))),
+            ses.sigma_tf,
+        )["delta_bic"]  # fmt: skip
         pair, one = disc.learned.heldout_after, alone.learned.heldout_after
         names = ", ".join(m.variant for m in at)
         if gain > -threshold:
@@ -128,7 +154,7 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
                 f"{names} with a learned term on top "
                 f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
             )
-        elif one <= pair:
+        elif same and one <= pair:
             why = (
                 f"a learned term at {alone.place} alone predicts held-out data as well as "
                 f"{names} with a learned term on top (held-out residual "
