@@ -626,6 +626,34 @@ def test_a_catalog_name_beside_a_learned_term_must_also_win_on_heldout_data(tmp_
 
 
 @pytest.mark.slow
+def test_a_catalog_name_beside_a_term_at_other_stages_is_weighed_on_the_stages_of_either(
+    tmp_path,
+):
+    """A preloaded return spring on the third probe (500 Hz staircase, no current sensor):
+    `wedge_load_torque` with a learned angle-sensor term on top (the motor and gap stages)
+    against the learned term alone, which acts on the motor's load torque (the motor
+    stage). They were never compared (different stages); now both are fitted on the
+    stages of either, and the notes say what the name was weighed against and how it
+    came out (the name is dropped, or kept with the evidence for the pair; the spring is
+    no wedge load torque, so a better term alone would drop it: either outcome passes).
+    On this code the pair wins by dBIC -137."""
+    import re
+
+    from ewb_ident.data.readers import read_trace
+    from validation_rigs import probe3_rig
+    from validation_rigs import uncatalogued_rig as ur
+
+    case = probe3_rig.make_case("return_spring", "a", 20261368, 12)
+    res = diagnose(read_trace(ur.write_case(case, tmp_path, "spring")))
+    (note,) = [n for n in res.notes if "(on the stages of either)" in n]
+    assert note.startswith("wedge_load_torque: ")
+    gain = float(re.search(r"dBIC ([-+0-9.]+)", note).group(1))
+    kept = "wedge_load_torque" in [f.effect for f in res.findings if f.catalog]
+    assert kept == ("kept beside the learned term at sensor.theta_deg" in note)
+    assert (gain <= -10) == kept
+
+
+@pytest.mark.slow
 def test_a_larger_gain_that_fails_a_heldout_fold_does_not_hide_a_term_that_generalises(
     tmp_path,
 ):

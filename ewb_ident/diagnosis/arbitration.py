@@ -153,6 +153,7 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
                 f"a learned term at {alone.place} alone fits its stages as well as "
                 f"{names} with a learned term on top "
                 f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
+                + ("" if same else " (on the stages of either)")
             )
         elif same and one <= pair:
             why = (
@@ -160,7 +161,12 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
                 f"{names} with a learned term on top (held-out residual "
                 f"{one / pair:.2f} of the pair's)"
             )
-        else:
+        else:  # the name stands, and says what it was weighed against
+            where = " and predict held-out data better" if same else " (on the stages of either)"
+            work.notes.append(
+                f"{names}: kept beside the learned term at {disc.place}: together they fit "
+                f"better than a learned term at {alone.place} alone (dBIC {gain:+.1f}){where}"
+            )
             continue
         _drop(work, disc.stage, at, why)
         work.discoveries[k] = (alone, *res)
