@@ -123,8 +123,8 @@ from ewb_ident.runtime.threads import parallel_map, threads
 
 # ----------------------------------------------------------------------------- main
 
-#: Most catalog names set aside because the whole chain did not confirm them (each
-#: sets the catalog search going again without it).
+#: The catalog is searched again without the names the whole chain did not confirm
+#: while fewer than this many are set aside (at most two searches more).
 MAX_SET_ASIDE = 2
 
 
