@@ -134,7 +134,7 @@ def test_the_shell_examples_run(page, tmp_path):
         "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
     }
     for k, code in enumerate(_blocks(page, "bash")):
-        script = SET_UP.sub("", code)
+        script = SET_UP.sub("", SET_UP.sub("", code))  # (twice: install && pytest)
         proc = subprocess.run(
             ["bash", "-e", "-c", script], cwd=work, env=env, capture_output=True, text=True,
             timeout=3600,
