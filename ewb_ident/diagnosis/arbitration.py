@@ -110,7 +110,9 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
 def _on(ses: Session, T: Sequence[str], fitted, disc, others) -> Any:
     """A fit of the stages ``T`` from ``fitted`` (a fit of some of them with a learned
     term at ``disc``'s place, whose basis it takes), with the mechanisms ``others`` of
-    the stages ``fitted`` did not cover."""
+    the stages ``fitted`` did not cover; ``fitted`` itself when it covers them all."""
+    if set(fitted.stages) == set(T):
+        return fitted
     extra = [m for m in others if set(ses.mechanism_stages(m)) & (set(T) - set(fitted.stages))]
     mechs = (*fitted.mechanisms, *extra)
     free = ses.free_of(T)
@@ -141,11 +143,8 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
         # held-out residuals of terms at different places are not comparable).
         same = res[0].stages == f_both.stages
         T = stage_order(set(res[0].stages) | set(f_both.stages))
-        gain = bic_evidence(
-            *((f_both, res[0]) if same else (_on(ses, T, f_both, disc, others),
-                                             _on(ses, T, res[0], alone, others))),
-            ses.sigma_tf,
-        )["delta_bic"]  # fmt: skip
+        pair_T, one_T = _on(ses, T, f_both, disc, others), _on(ses, T, res[0], alone, others)
+        gain = bic_evidence(pair_T, one_T, ses.sigma_tf)["delta_bic"]
         pair, one = disc.learned.heldout_after, alone.learned.heldout_after
         names = ", ".join(m.variant for m in at)
         if gain > -threshold:
