@@ -635,8 +635,7 @@ def test_a_catalog_name_beside_a_term_at_other_stages_is_weighed_on_the_stages_o
     stage). They were never compared (different stages); now both are fitted on the
     stages of either, and the notes say what the name was weighed against and how it
     came out (the name is dropped, or kept with the evidence for the pair; the spring is
-    no wedge load torque, so a better term alone would drop it: either outcome passes).
-    On this code the pair wins by dBIC -137."""
+    no wedge load torque, so a better term alone would drop it: either outcome passes)."""
     import re
 
     from ewb_ident.data.readers import read_trace
