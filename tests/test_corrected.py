@@ -53,9 +53,13 @@ def test_fit_with_the_planted_mechanism_recovers_the_truth(name, mechanism):
         assert se is not None and abs(result.params[p] - truth[p]) < 3 * se + 1e-3 * abs(
             truth[p]
         ), (p, result.params[p], truth[p], se)
-    # and the mechanism's own parameters sit in the fit.json with standard errors
+    # and the mechanism's own parameters sit in the fit.json with standard errors; one
+    # the fit leaves at a hard bound (wedge_load_torque's reversal speed, sharper than
+    # the trace resolves) has none, and the fit says so
     own = [k for k in result.params if k.startswith(mechanism + ".")]
-    assert own and all(result.stderr[k] is not None for k in own)
+    assert own
+    for k in own:
+        assert result.stderr[k] is not None or any(w.startswith(k) for w in result.warnings), k
 
 
 def test_the_baseline_misses_what_the_corrected_model_recovers(tmp_path):

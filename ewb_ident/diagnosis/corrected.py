@@ -67,13 +67,33 @@ def corrected_record(trace: Trace, f0, f1, data, ev, notes, learned=()) -> Corre
         baseline_stderr_white=tables["baseline_stderr_white"],
         converged=bool(f1.converged),
         delta_bic=float(ev["delta_bic"]),
-        warnings=tuple(notes),
+        warnings=(*notes, *at_bounds(f1)),
         predictions={k: np.asarray(v) for k, v in f1.predictions[0].items()},
         fit=f1,
         data=data,
         learned=tuple(learned),
         context={"omega_ref": float(data["omega_ref"])},
     )
+
+
+def at_bounds(f: FitResult) -> list[str]:
+    """Words for each mechanism parameter with hard bounds that the fit left at one of
+    them, where it has no slope and so no standard error."""
+    out = []
+    for m in f.mechanisms:
+        for info in m.param_info():
+            v = float(m.values()[info.name])
+            if info.transform == "logit" and not (
+                info.lower + 1e-6 * (info.upper - info.lower)
+                < v
+                < info.upper - 1e-6 * (info.upper - info.lower)
+            ):
+                side = "lower" if v - info.lower < info.upper - v else "upper"
+                out.append(
+                    f"{m.variant}.{info.name} = {v:.3g} {info.unit} sits at its {side} "
+                    "bound, where the fit leaves it (no standard error)"
+                )
+    return out
 
 
 def with_terms(data: dict[str, Any], trace: Trace, specs, values) -> dict[str, Any]:

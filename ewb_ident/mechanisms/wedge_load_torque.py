@@ -37,7 +37,7 @@ _INFO = (
     ParamInfo(
         "omega0_rad_s",
         "rad/s",
-        "log",
+        "logit",
         0.5,
         lower=0.01,
         upper=20.0,
