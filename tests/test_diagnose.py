@@ -14,6 +14,7 @@ import dataclasses
 import functools
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,8 +24,10 @@ from ewb_ident import rig
 from ewb_ident.cli import app
 from ewb_ident.cli.options import mechanism_option
 from ewb_ident.data.outputs import json_text
+from ewb_ident.data.readers import read_trace
 from ewb_ident.data.trace import Trace
 from ewb_ident.data.writers import write_trace
+from ewb_ident.diagnosis import session
 from ewb_ident.diagnosis.corrected import fit_corrected
 from ewb_ident.diagnosis.diagnose import diagnose
 from ewb_ident.diagnosis.result import DiagnosisResult
@@ -573,3 +576,16 @@ def test_a_headline_parameter_the_chain_and_its_stage_disagree_on_is_that_uncert
     assert wider["c"] == stderr["c"] and wider["mu"] == stderr["mu"] and wider["R"] == 0.01
     (note,) = stage_spread_note(apart, wider)
     assert "chain's a, b differ" in note
+
+
+def test_a_finding_whose_fits_did_not_converge_says_so(monkeypatch):
+    """Every solver status is checked: with the candidate fits cut to two steps, the
+    backlash is still found, and its words and evidence say its fits stopped early."""
+    concealed = Path(__file__).parents[1] / "datasets" / "concealed"
+    cut = functools.partial(session.fit_mechanisms, max_steps=2)
+    monkeypatch.setattr(session, "fit_mechanisms", cut)
+    res = diagnose(read_trace(concealed / "backlash.csv"))
+    (f,) = [f for f in res.findings if f.effect == "backlash"]
+    assert f.evidence["converged"] == 0.0 and f.evidence["converged_with"] == 0.0
+    assert "stopped before converging" in f.explanation
+    assert all(isinstance(v, float) for v in f.evidence.values())

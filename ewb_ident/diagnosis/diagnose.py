@@ -92,6 +92,7 @@ from ewb_ident.diagnosis.findings import (
     mechanism_start,
     ranked_stages,
     refitted_ctx,
+    status_evidence,
     stderr_of,
     with_summary,
 )
@@ -197,8 +198,7 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
     lap("baseline_stages")
     checks_before, cells, flagged = _locate(ses, trace)
     lap("locate")
-    # Structured sensor noise (a mains hum) is named and removed, then the trace is
-    # diagnosed without it: it is not brake physics.
+    # Structured sensor noise (a mains hum) is not brake physics: named, then removed.
     artefacts, cleaned = find_artefacts(checks_before, trace, ses.labels)
     if cleaned:
         say("removing periodic interference: " + ", ".join(sorted(cleaned)))
@@ -507,7 +507,7 @@ def _try(ses, tmpl, selected, still, rnd, bic_threshold) -> _Tried | None:
     f0 = ses.fit(T, ms, explore=[False] * len(ms))
     f1 = ses.fit(T, ms + [tmpl], explore=[False] * len(ms) + [True])
     own = [c for st in mst for c in STAGE_OUTPUTS[st]]
-    ev = bic_evidence(f1, f0, ses.sigma_tf, own) | {"converged": float(f1.converged)}
+    ev = bic_evidence(f1, f0, ses.sigma_tf, own) | status_evidence(f1, f0)
     mech = fitted_mechanism(f1, tmpl.variant)
     se = f1.mechanism_stderr(mech)
     reason = mech.implausible_reason(mech.values(), se)

@@ -3,7 +3,7 @@ acts, and its metrics before and after."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -130,6 +130,25 @@ def refitted_ctx(ses, fit_m: FitResult | None) -> dict[str, Any]:
     return ctx
 
 
+def status_evidence(f_with: FitResult, f_without: FitResult) -> dict[str, float]:
+    """Whether the fits with and without a term converged: ``converged`` (1.0 when both
+    did), ``converged_with`` and ``converged_without``."""
+    w, wo = float(f_with.converged), float(f_without.converged)
+    return {"converged": min(w, wo), "converged_with": w, "converged_without": wo}
+
+
+def status_words(ev: Mapping[str, float]) -> str:
+    """A sentence when a finding's fits did not converge: its evidence is then what the
+    solver reached, not an optimum."""
+    if ev.get("converged", 1.0):
+        return ""
+    which = [w for w in ("with", "without") if not ev.get(f"converged_{w}", 1.0)]
+    return (
+        f"the fit {' and '.join(which)} it stopped before converging: its ΔBIC is what the "
+        "solver reached, not an optimum"
+    )
+
+
 def make_finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx=None) -> Finding:
     ctx = ses.ctx if ctx is None else ctx
     vals = mech.values()
@@ -148,6 +167,8 @@ def make_finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx
         text += f". But {rivals} explains it about as well: this trace cannot tell them apart"
         hints = [SEPARATE[frozenset((mech.id, e))] for e, _ in alternatives]
         text += "".join(f"; {h}" for h in hints if h)
+    if status_words(ev):
+        text += f". But {status_words(ev)}"
     return Finding(
         effect=mech.id,
         variant=mech.variant,
@@ -189,7 +210,7 @@ def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
         explore=[False] * len(ms) + [True],
         alt_starts=([disc.start] if disc.start else []) + ses.nominal_starts(T),
     )
-    ev = bic_evidence(f_new, f_cur, ses.sigma_tf)
+    ev = bic_evidence(f_new, f_cur, ses.sigma_tf) | status_evidence(f_new, f_cur)
     if ev["delta_bic"] > -threshold:
         return None
     return f_new, ev, term_at(f_new.mechanisms, disc.place)
@@ -278,6 +299,8 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     if close:
         who = ("Terms at", "explain") if len(close) > 1 else ("A term at", "explains")
         text += f" {who[0]} {_and(close)} {who[1]} it about as well: the trace cannot tell."
+    if status_words(ev):
+        text += f" But {status_words(ev)}."
     heldout = {
         "improvement_pct": ho.improvement_pct,
         "method": disc.method,
