@@ -37,6 +37,17 @@ def test_version_answers_fast_without_jax():
     assert "ewb-ident" in runner.invoke(app, ["--version"]).output
 
 
+def test_diagnose_imports_no_scipy_stats_or_signal():
+    """About 1 s of import at every diagnose: its modules compute what they need of
+    them (ewb_ident.diagnosis.filters)."""
+    code = (
+        "import sys, ewb_ident.diagnosis.diagnose, ewb_ident.reporting.figures; "
+        "print([m for m in ('scipy.stats', 'scipy.signal') if m in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 def test_fit_writes_the_contract_and_a_summary(tmp_path):
     out = runner.invoke(app, ["fit", str(DATA / "staircase_200hz.csv"), "--out", str(tmp_path)])
     assert out.exit_code == 0, out.output

@@ -1,15 +1,16 @@
-"""Filters of a series that discovery uses: two of :mod:`scipy.signal`'s, computed as
-SciPy computes them, without importing ``scipy.signal``, and a counter of the motion's
-reversals (:func:`reversals`).
+"""Filters of a series that discovery uses: two of :mod:`scipy.signal`'s and
+:func:`scipy.stats.rankdata`, computed as SciPy computes them, without importing
+``scipy.signal`` or ``scipy.stats``, and a counter of the motion's reversals
+(:func:`reversals`).
 
 Importing ``scipy.signal`` imports ``scipy.stats``, ``scipy.optimize``,
-``scipy.interpolate`` and ``scipy.spatial`` with it: about 1 s of processor time at
-every ``ewb-ident diagnose``, which uses none of them. Each function here does the same
-floating-point operations in the same order as its SciPy counterpart, so its results
-are SciPy's (bit for bit with SciPy 1.17; ``tests/test_discovery.py`` checks both
-against the installed SciPy's to rounding). And the leave-one-out averages that take a
-recorded channel's noise at a sample out of its level there (:func:`leave_one_out`,
-:func:`denoised`).
+``scipy.interpolate`` and ``scipy.spatial`` with it, and ``scipy.stats`` alone takes
+about 1 s: processor time at every ``ewb-ident diagnose``, which uses none of them.
+Each function here does the same floating-point operations in the same order as its
+SciPy counterpart, so its results are SciPy's (bit for bit with SciPy 1.17;
+``tests/test_discovery.py`` checks them against the installed SciPy's). And the
+leave-one-out averages that take a recorded channel's noise at a sample out of its level
+there (:func:`leave_one_out`, :func:`denoised`).
 """
 
 from __future__ import annotations
@@ -160,3 +161,17 @@ def denoised(y: np.ndarray, dt: float) -> np.ndarray:
     halves = sorted({max(1, round(h)) for h in np.geomspace(1, top, 8)})
     fits = [leave_one_out(y, h) for h in halves]
     return fits[int(np.argmin([np.mean((y - f) ** 2) for f in fits]))]
+
+
+def average_ranks(v: np.ndarray) -> np.ndarray:
+    """Ranks of ``v`` from 1, ties given the mean of their ranks
+    (``scipy.stats.rankdata(v)``, method ``"average"``)."""
+    v = np.asarray(v, dtype=float).reshape(-1)
+    order = np.argsort(v, kind="mergesort")
+    s = v[order]
+    new = np.r_[True, s[1:] != s[:-1]]
+    starts = np.flatnonzero(new)
+    counts = np.diff(np.r_[starts, s.size])
+    out = np.empty(v.size)
+    out[order] = (starts + 0.5 * (counts + 1))[np.cumsum(new) - 1]
+    return out

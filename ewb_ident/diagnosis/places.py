@@ -10,10 +10,9 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.stats import rankdata
 
 from ewb_ident.data.stages import CHANNEL_INPUT_OF, CHANNEL_STAGE, STAGE_OUTPUTS
-from ewb_ident.diagnosis.filters import denoised, fft_convolve_columns
+from ewb_ident.diagnosis.filters import average_ranks, denoised, fft_convolve_columns
 from ewb_ident.diagnosis.inputs import Signal, periodic, sensor_signal
 from ewb_ident.mechanisms.learned import PLACES, LearnedTerm
 from ewb_ident.model.integrate import zoh_exact
@@ -291,7 +290,7 @@ def monotone_twin(signals: Mapping[str, Signal], name: str, local: Sequence[str]
     def ranks(v: np.ndarray) -> np.ndarray | None:
         if not (np.all(np.isfinite(v)) and np.ptp(v) > 0):
             return None
-        r = rankdata(v) - (v.size + 1) / 2.0
+        r = average_ranks(v) - (v.size + 1) / 2.0
         return r / float(np.linalg.norm(r))
 
     own = ranks(signals[name].values) if name in signals and not is_local(name, local) else None
