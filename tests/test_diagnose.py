@@ -589,3 +589,34 @@ def test_a_finding_whose_fits_did_not_converge_says_so(monkeypatch):
     assert f.evidence["converged"] == 0.0 and f.evidence["converged_with"] == 0.0
     assert "stopped before converging" in f.explanation
     assert all(isinstance(v, float) for v in f.evidence.values())
+
+
+def test_the_search_penalty_is_the_extended_bic_of_the_distilled_choice():
+    """Choosing k terms among M library forms adds 2 ln C(M, k) to the expression's BIC
+    against a catalog law fixed beforehand; nothing when nothing was chosen."""
+    from types import SimpleNamespace
+
+    from ewb_ident.diagnosis.arbitration import search_penalty
+
+    def disc(m, k):
+        return SimpleNamespace(distilled=SimpleNamespace(searched=m), terms=[()] * k)
+
+    for m, k in [(6, 1), (10, 1), (30, 2), (120, 3)]:
+        assert search_penalty(disc(m, k)) == pytest.approx(2 * math.log(math.comb(m, k)))
+    assert search_penalty(disc(0, 0)) == 0.0 and search_penalty(disc(5, 0)) == 0.0
+
+
+@pytest.mark.slow
+def test_a_fade_on_a_decelerating_disc_keeps_its_catalog_name():
+    """A friction fade at 15x the noise (100 Hz, pad radius 0.2 m, widened accuracy
+    study seed 20261372 case 24): a learned friction term on the disc speed, which falls
+    as the energy grows, fits the torque stage better in-sample by dBIC -12.3; charged
+    3.6 for choosing its expression among six forms, that is short of the evidence
+    threshold, and the fade is named first with its rate recovered."""
+    from studies.diagnosis_accuracy import case_plan, make_case
+
+    trace, (fade,), *_ = make_case(24, case_plan()[24][1], seed=20261372, widen=True)
+    first = diagnose(trace).findings[0]
+    assert first.effect == "friction_fade"
+    truth = fade.phi_per_K / fade.heat_capacity_J_per_K
+    assert abs(first.params["phi_per_J"] - truth) < 0.2 * truth, (first.params, truth)

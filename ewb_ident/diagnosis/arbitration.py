@@ -8,7 +8,8 @@ explain a stage, the catalog name is kept only when the data ask for it:
   least as much of the excess residual there as the best learned term does on held-out
   data (less :data:`~ewb_ident.diagnosis.discovery.CATALOG_MARGIN`), and the learned
   term fitted through the model in their place must not fit the stage better by the
-  evidence threshold;
+  evidence threshold, its ΔBIC charged for the choice of its expression
+  (:func:`search_penalty`);
 * :func:`one_explanation`: when a learned term is still needed on top of a catalog
   mechanism at its stage, the mechanism must also earn its place on top of a learned
   term fitted without it: the stage's fit with both must beat the learned term alone by
@@ -28,6 +29,7 @@ searches run again with the names the whole chain did not confirm set aside.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -96,15 +98,28 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
             if res is None or res[0].stages != with_all.stages:
                 continue
             gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
-            if gain > -threshold:
+            search = search_penalty(disc)
+            if gain + search > -threshold:
                 continue
             why = (
                 f"a learned term at {disc.place} in its place fits its stages better than "
-                f"{names} (dBIC {gain:+.1f}, threshold -{threshold:g})"
+                f"{names} (dBIC {gain:+.1f}, {search:+.1f} for its expression chosen among "
+                f"{disc.distilled.searched} forms, threshold -{threshold:g})"
             )
         _drop(work, stage, at, why)
         for st in T:
             work.current[st] = fits_of(ses, work.selected)((st,))
+
+
+def search_penalty(disc) -> float:
+    """What choosing the distilled expression's ``k`` terms among the library's ``M``
+    forms adds to its BIC against a catalog law fixed beforehand: ``2 ln C(M, k)`` (the
+    extended BIC of Chen and Chen, 2008). Without it an expression picked for its fit
+    to this trace is compared as if it had been written down before seeing it."""
+    m, k = disc.distilled.searched, len(disc.terms)
+    if not 0 < k <= m:
+        return 0.0
+    return 2.0 * (math.lgamma(m + 1) - math.lgamma(k + 1) - math.lgamma(m - k + 1))
 
 
 def _on(ses: Session, T: Sequence[str], fitted, disc, others) -> Any:

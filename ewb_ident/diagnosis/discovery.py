@@ -140,6 +140,8 @@ class PlaceFit:
     #: Input groups that, put in place of a chosen one, fit held-out data about as well
     #: (held-out score within half the evidence threshold): the trace cannot tell them.
     ties: tuple[str, ...] = ()
+    #: Library items a distilled expression was chosen from (0: a learned term).
+    searched: int = 0
 
     @property
     def rank_gain(self) -> float:
@@ -316,8 +318,7 @@ def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
     keep = np.linalg.norm(G, axis=0) > 0
     norms = np.where(keep, np.linalg.norm(G, axis=0), 1.0)
     G = G / norms
-    # A column the stage's own parameters already make (the torque itself at the torque's
-    # output is a change of mu) is no new physics: left out.
+    # What the stage's parameters already make is no new physics (the torque at its output: mu).
     if J.shape[1]:
         Uj = column_span(J)
         orth = np.linalg.norm(G - Uj @ (Uj.T @ G), axis=0)
@@ -467,6 +468,7 @@ def _distilled_fit(d: Design, items, learned: PlaceFit, place: str, chosen, cur)
         learned.stage_gain,
         d.consistent(cols, RIDGES[0]),
         d.n_folds,
+        searched=len(items),
     )
     coef = x[d.kb :] / d.norms[cols] if cols else np.zeros(0)
     return fit, [items[j] for j in chosen], coef, x[: d.kb]
@@ -616,8 +618,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
 
     # Of the places that explain the mismatch about as well, the first whose distilled
     # term keeps about as much held-out gain as the best distilled one: a learned term
-    # the library cannot express (its shape is in the learned basis but not the
-    # library's) yields to one it can.
+    # the library cannot express (in the learned basis, not the library) yields to one.
     def close_to(pf):  # the other places whose learned term explains about as much
         return [r for r in results[1:] if alike(r[0], pf)]
 
@@ -635,9 +636,8 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
     others = list(others)  # (a copy: ``done`` keeps the original)
     fallbacks = fallback_expressions(dl, items, pf, dfit, fit)
     best = estimates(fit, step, free_only=False)
-    # Other estimates of the stage's parameters: the distilled forms about as good on
-    # held-out data, and the distilled term of every other place about as good (the
-    # note "the trace cannot tell").
+    # Other estimates of the stage's parameters: the distilled forms, and the distilled
+    # terms of other places, about as good on held-out data ("the trace cannot tell").
     elsewhere = []
     for r in close_to(pf):
         dfit_o, chosen_o, x_o, fit_o, step_o, _, _ = distilled_at(r)
