@@ -9,7 +9,8 @@ explain a stage, the catalog name is kept only when the data ask for it:
   data (less :data:`~ewb_ident.diagnosis.discovery.CATALOG_MARGIN`), and the learned
   term fitted through the model in their place must not fit the stage better by the
   evidence threshold, its ΔBIC charged for the choice of its expression
-  (:func:`search_penalty`);
+  (:func:`search_penalty`), unless the catalog mechanisms explain more of the excess
+  than the learned term does on held-out data;
 * :func:`one_explanation`: when a learned term is still needed on top of a catalog
   mechanism at its stage, the mechanism must also earn its place on top of a learned
   term fitted without it: the stage's fit with both must beat the learned term alone by
@@ -100,6 +101,13 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
             gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
             search = search_penalty(disc)
             if gain + search > -threshold:
+                continue
+            if learned < explained:  # a better fit to this trace, worse on held-out data
+                work.notes.append(
+                    f"{names}: kept: a learned term at {disc.place} fits its stages better "
+                    f"(dBIC {gain:+.1f}) but removes less of the excess on held-out data "
+                    f"({100 * learned:.1f} %) than {names} does ({100 * explained:.1f} %)"
+                )
                 continue
             why = (
                 f"a learned term at {disc.place} in its place fits its stages better than "
