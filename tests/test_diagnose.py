@@ -580,15 +580,22 @@ def test_a_headline_parameter_the_chain_and_its_stage_disagree_on_is_that_uncert
 
 def test_a_finding_whose_fits_did_not_converge_says_so(monkeypatch):
     """Every solver status is checked: with the candidate fits cut to two steps, the
-    backlash is still found, and its words and evidence say its fits stopped early."""
+    backlash's candidate still improves its stage, and its evidence and words say its
+    fits stopped early (the evidence stays numbers, as the contract has it)."""
+    from ewb_ident.diagnosis.diagnose import _try
+    from ewb_ident.diagnosis.findings import make_finding
+    from ewb_ident.mechanisms import Backlash
+
     concealed = Path(__file__).parents[1] / "datasets" / "concealed"
+    ses = session.Session(read_trace(concealed / "backlash.csv"))
+    ses.baseline()
     cut = functools.partial(session.fit_mechanisms, max_steps=2)
     monkeypatch.setattr(session, "fit_mechanisms", cut)
-    res = diagnose(read_trace(concealed / "backlash.csv"))
-    (f,) = [f for f in res.findings if f.effect == "backlash"]
-    assert f.evidence["converged"] == 0.0 and f.evidence["converged_with"] == 0.0
-    assert "stopped before converging" in f.explanation
-    assert all(isinstance(v, float) for v in f.evidence.values())
+    cand, f1, ev, mech = _try(ses, Backlash(), [], {"gap"}, 1, 10.0)
+    assert ev["delta_bic"] < -10 and ev["converged"] == 0.0 and ev["converged_with"] == 0.0
+    assert all(isinstance(v, float) for v in ev.values())
+    found = make_finding(ses, mech, f1.mechanism_stderr(mech), ev, [], {}, {})
+    assert "stopped before converging" in found.explanation
 
 
 def test_the_search_penalty_is_the_extended_bic_of_the_distilled_choice():
