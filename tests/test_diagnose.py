@@ -623,10 +623,12 @@ def test_a_fade_on_a_decelerating_disc_keeps_its_catalog_name():
     from studies.diagnosis_accuracy import case_plan, make_case
 
     trace, (fade,), *_ = make_case(24, case_plan()[24][1], seed=20261372, widen=True)
-    first = diagnose(trace).findings[0]
+    res = diagnose(trace)
+    first = res.findings[0]
     assert first.effect == "friction_fade"
     truth = fade.phi_per_K / fade.heat_capacity_J_per_K
     assert abs(first.params["phi_per_J"] - truth) < 0.2 * truth, (first.params, truth)
+    assert any("once choosing its expression among 6 forms is charged" in n for n in res.notes)
 
 
 @pytest.mark.slow

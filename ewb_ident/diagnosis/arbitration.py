@@ -100,13 +100,20 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
                 continue
             gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
             search = search_penalty(disc)
+            if gain > -threshold:
+                continue
+            kept = f"{names}: kept: a learned term at {disc.place} fits its stages better "
             if gain + search > -threshold:
+                work.notes.append(
+                    kept + f"(dBIC {gain:+.1f}), but not by the evidence threshold once "
+                    f"choosing its expression among {disc.distilled.searched} forms is "
+                    f"charged ({search:+.1f})"
+                )
                 continue
             if learned < explained:  # a better fit to this trace, worse on held-out data
                 work.notes.append(
-                    f"{names}: kept: a learned term at {disc.place} fits its stages better "
-                    f"(dBIC {gain:+.1f}) but removes less of the excess on held-out data "
-                    f"({100 * learned:.1f} %) than {names} does ({100 * explained:.1f} %)"
+                    kept + f"(dBIC {gain:+.1f}) but removes less of the excess on held-out "
+                    f"data ({100 * learned:.1f} %) than {names} does ({100 * explained:.1f} %)"
                 )
                 continue
             why = (
