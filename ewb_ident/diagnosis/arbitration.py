@@ -99,9 +99,9 @@ def second_opinion(ses: Session, work: Any, threshold: float) -> None:
             if res is None or res[0].stages != with_all.stages:
                 continue
             gain = bic_evidence(res[0], with_all, ses.sigma_tf)["delta_bic"]
-            search = search_penalty(disc)
             if gain > -threshold:
                 continue
+            search = search_penalty(disc)
             kept = f"{names}: kept: a learned term at {disc.place} fits its stages better "
             if gain + search > -threshold:
                 work.notes.append(

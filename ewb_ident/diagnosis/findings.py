@@ -167,8 +167,8 @@ def make_finding(ses, mech, se, ev, flagged, before, after, alternatives=(), ctx
         text += f". But {rivals} explains it about as well: this trace cannot tell them apart"
         hints = [SEPARATE[frozenset((mech.id, e))] for e, _ in alternatives]
         text += "".join(f"; {h}" for h in hints if h)
-    if status_words(ev):
-        text += f". But {status_words(ev)}"
+    if stopped := status_words(ev):
+        text += f". But {stopped}"
     return Finding(
         effect=mech.id,
         variant=mech.variant,
@@ -299,8 +299,8 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     if close:
         who = ("Terms at", "explain") if len(close) > 1 else ("A term at", "explains")
         text += f" {who[0]} {_and(close)} {who[1]} it about as well: the trace cannot tell."
-    if status_words(ev):
-        text += f" But {status_words(ev)}."
+    if stopped := status_words(ev):
+        text += f" But {stopped}."
     heldout = {
         "improvement_pct": ho.improvement_pct,
         "method": disc.method,
