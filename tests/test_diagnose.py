@@ -642,3 +642,42 @@ def test_a_fade_keeps_its_name_against_a_learned_disc_speed_term(seed, case, rel
     assert abs(first.params["phi_per_J"] - truth) < rel * truth, (first.params, truth)
     kept = [n for n in res.notes if n.startswith("friction_fade: kept: a learned term")]
     assert any(why in n for n in kept), res.notes
+
+
+def test_a_catalog_name_on_top_of_a_term_is_weighed_against_the_best_term_alone(monkeypatch):
+    """The learned term a catalog mechanism must beat is the best of the discovery's
+    expressions and places on the pair's stages (lowest BIC among those that generalise
+    and pass the threshold), not the first found; one on other stages counts only when
+    none acts on the pair's."""
+    from types import SimpleNamespace
+
+    import ewb_ident.diagnosis.arbitration as arb
+
+    def alt(name, dbic, stages, generalises=True):
+        return SimpleNamespace(
+            name=name, learned=SimpleNamespace(groups=("x",)),
+            distilled=SimpleNamespace(generalises=generalises), dbic=dbic, stages=stages,
+        )  # fmt: skip
+
+    def fake_fit(ses, d, others, threshold):
+        if d.dbic > -threshold:
+            return None
+        return (SimpleNamespace(stages=d.stages), {"delta_bic": d.dbic}, d.name)
+
+    monkeypatch.setattr(arb, "fit_learned", fake_fit)
+    pair = SimpleNamespace(stages=("motor",))
+
+    def disc(*alts):
+        return SimpleNamespace(**vars(alts[0]), alternatives=lambda: list(alts[1:]))
+
+    def best(*alts):
+        out = arb.best_alone(None, disc(*alts), [], pair, 10.0)
+        return None if out is None else out[1][2]
+
+    first = alt("first", -15.9, ("motor",))
+    assert best(first, alt("better", -40.0, ("motor",))) == "better"
+    # Not one that fails held-out data, nor one on other stages while one acts on the pair's.
+    assert best(first, alt("overfit", -90.0, ("motor",), generalises=False)) == "first"
+    assert best(first, alt("sensor", -90.0, ("motor", "gap"))) == "first"
+    assert best(alt("weak", -3.0, ("motor",)), alt("sensor", -90.0, ("motor", "gap"))) == "sensor"
+    assert best(alt("weak", -3.0, ("motor",))) is None

@@ -17,10 +17,10 @@ explain a stage, the catalog name is kept only when the data ask for it:
   the evidence threshold (``dBIC <= -threshold``, the rule every finding passes), and
   predict held-out data better than it (the pair's catalog parameters are fitted on
   every fold, which can only favour the pair). Otherwise one explanation (the learned
-  term) does what two claim to. Where the term alone acts at other stages than the
-  pair (a motor load torque against an angle sensor's term), both are fitted on the
-  stages of either and compared in BIC alone (held-out residuals of terms at different
-  places are not comparable).
+  term, the best of its expressions and places) does what two claim to. Where the term
+  alone acts at other stages than the pair (a motor load torque against an angle
+  sensor's term), both are fitted on the stages of either and compared in BIC alone
+  (held-out residuals of terms at different places are not comparable).
 
 Both compare fits of the same stages and weights; a dropped catalog name becomes a rival
 the finding lists. :func:`promote` selects a held-back catalog rival in place of a
@@ -157,18 +157,18 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
     """A catalog mechanism under a learned term at its stages must beat, together with
     that term, a learned term fitted without it by ``threshold`` in BIC and on held-out
     data (the learned terms' held-out residuals); otherwise it is dropped and the
-    learned term fitted without it takes the discovery's place."""
+    learned term fitted without it takes the discovery's place. The term without it is
+    the best of the discovery's expressions and places (:func:`best_alone`)."""
     for k, (disc, f_both, _, _) in enumerate(list(work.discoveries)):
         at = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(f_both.stages)]
         if not at:
             continue
         others = [m for m in work.selected if m not in at]
-        alone = discover(ses, disc.stage, fits_of(ses, others))
-        if alone is None or not alone.learned.groups or not alone.distilled.generalises:
+        found = discover(ses, disc.stage, fits_of(ses, others))
+        best = None if found is None else best_alone(ses, found, others, f_both, threshold)
+        if best is None:
             continue
-        res = fit_learned(ses, alone, others, threshold)
-        if res is None:
-            continue
+        alone, res = best
         # Where the term alone acts at other stages, both on the stages of either (the
         # held-out residuals of terms at different places are not comparable).
         same = res[0].stages == f_both.stages
@@ -201,6 +201,22 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
         work.discoveries[k] = (alone, *res)
         for st in res[0].stages:
             work.current[st] = res[0]
+
+
+def best_alone(ses: Session, disc, others, f_both, threshold: float):
+    """The best learned term without the catalog mechanism: of ``disc``'s distilled term
+    and its alternatives (other expressions, other places about as good) that generalise
+    and lower their stages' BIC by ``threshold``, the lowest BIC, on the stages of the
+    pair's fit ``f_both`` if any acts there. Returns ``(discovery, fit_learned result)``
+    or ``None``. The pair must beat the best learned term alone, not the first one
+    found: without a current sensor the motor's two places explain a load alike, and
+    the first can be the one whose distilled form fits the motor worse."""
+    tried = [d for d in (disc, *disc.alternatives()) if d.learned.groups]
+    fits = [(d, r) for d in tried if d.distilled.generalises
+            and (r := fit_learned(ses, d, others, threshold)) is not None]  # fmt: skip
+    same = [x for x in fits if x[1][0].stages == f_both.stages]
+    pool = same or fits[:1]
+    return min(pool, key=lambda x: x[1][1]["delta_bic"], default=None)
 
 
 def promote(work, rival: tuple, generic_ev: dict[str, float]) -> None:
