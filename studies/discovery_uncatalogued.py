@@ -45,6 +45,7 @@ families outside the catalog and this rig's fourteen, written later as a blind p
 ``--rig probe2`` from ``validation_rigs/probe2_rig.py``: six more again, written as a
 second blind probe after the first's report.
 ``--rig probe3`` from ``validation_rigs/probe3_rig.py``: six more again, a third blind probe.
+``--rig probe4`` from ``validation_rigs/probe4_rig.py``: six more again, a fourth blind probe.
 """
 
 from __future__ import annotations
@@ -60,13 +61,19 @@ from typing import Any
 import numpy as np
 
 from studies.diagnosis_accuracy import _read
-from validation_rigs import probe2_rig, probe3_rig, probe_rig
+from validation_rigs import probe2_rig, probe3_rig, probe4_rig, probe_rig
 from validation_rigs import uncatalogued_rig as ur
 
 #: The independent rigs the cases come from (``--rig``): the fourteen families of the
 #: uncatalogued rig, or the six of a probe rig (each written later as a blind probe of
 #: discovery; their clean traces are the uncatalogued rig's).
-RIGS = {"uncatalogued": ur, "probe": probe_rig, "probe2": probe2_rig, "probe3": probe3_rig}
+RIGS = {
+    "uncatalogued": ur,
+    "probe": probe_rig,
+    "probe2": probe2_rig,
+    "probe3": probe3_rig,
+    "probe4": probe4_rig,
+}
 
 HERE = Path(__file__).resolve().parent
 
