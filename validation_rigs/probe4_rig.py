@@ -35,13 +35,13 @@ Families (two forms each; ``place`` and ``depends_on`` in the truth vocabulary)
   angle): the rolling elements of the angle-to-piston drive (the wedge's rollers, a
   roller screw's planets) creep under load (Carter creep): each travel ``|dx|`` of the
   drive under the clamping force ``F`` walks the rollers back by ``kappa (F / F_rt)
-  |dx|``, so the piston falls behind the drive geometry, ``x = gap(theta) - delta`` (the LVDT reads the piston, the bell sees
-  it). ``kappa`` [-] is the creep ratio at ``F_rt`` (the strength). a: the creep
-  accumulates (a ratchet, ``delta_k = delta_k-1 + kappa F_k / F_rt |dx_k|``); b: a cage
-  spring re-centres the rollers with a time constant ``tau_r`` (drawn 0.3-1.5 s),
-  ``delta_k = delta_k-1 exp(-dt / tau_r) + kappa F_k / F_rt |dx_k|``. ``F_k`` is the
-  force at the previous shift (an explicit step; the shift is tiny per sample). The
-  term is the x shift ``-delta`` [m].
+  |dx|``, so the piston falls behind the drive geometry, ``x = gap(theta) - delta`` (the
+  LVDT reads the piston, the bell sees it). ``kappa`` [-] is the creep ratio at ``F_rt``
+  (the strength). a: the creep accumulates (a ratchet, ``delta_k = delta_k-1 + kappa F_k
+  / F_rt |dx_k|``); b: a cage spring re-centres the rollers with a time constant
+  ``tau_r`` (drawn 0.3-1.5 s), ``delta_k = delta_k-1 exp(-dt / tau_r) + kappa F_k / F_rt
+  |dx_k|``. ``F_k`` is the force at the previous shift (an explicit step; the shift is
+  tiny per sample). The term is the x shift ``-delta`` [m].
 * ``pad_edge_contact`` (force.output; x): the pad's load path changes near full clamp,
   which the bell (one elastic law over the whole stroke) cannot follow. With ``u =
   (x - x_e) / (x_pk - x_e)``, ``x_pk`` the twin's largest x and ``x_e`` the x at which
