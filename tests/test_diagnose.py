@@ -644,18 +644,20 @@ def test_a_fade_keeps_its_name_against_a_learned_disc_speed_term(seed, case, rel
     assert any(why in n for n in kept), res.notes
 
 
-def test_a_catalog_name_on_top_of_a_term_is_weighed_against_the_best_term_alone(monkeypatch):
-    """The learned term a catalog mechanism must beat is the best of the discovery's
-    expressions and places on the pair's stages (lowest BIC among those that generalise
-    and pass the threshold), not the first found; one on other stages counts only when
-    none acts on the pair's."""
+def test_a_catalog_name_on_top_of_a_term_is_weighed_against_every_term_alone(monkeypatch):
+    """The learned terms a catalog mechanism with a term on top must beat: the
+    discovery's own first, then its other expressions and places by BIC, only those
+    that generalise and pass the threshold, on the pair's stages when any acts there.
+    The name goes at the first the pair does not beat (which takes the discovery's
+    place); it stays, with a note naming the discovery's own, when it beats them all."""
     from types import SimpleNamespace
 
     import ewb_ident.diagnosis.arbitration as arb
+    from ewb_ident.diagnosis.result import Candidate
 
     def alt(name, dbic, stages, generalises=True):
         return SimpleNamespace(
-            name=name, learned=SimpleNamespace(groups=("x",)),
+            name=name, learned=SimpleNamespace(groups=("x",)), place=f"at_{name}",
             distilled=SimpleNamespace(generalises=generalises), dbic=dbic, stages=stages,
         )  # fmt: skip
 
@@ -670,14 +672,50 @@ def test_a_catalog_name_on_top_of_a_term_is_weighed_against_the_best_term_alone(
     def disc(*alts):
         return SimpleNamespace(**vars(alts[0]), alternatives=lambda: list(alts[1:]))
 
-    def best(*alts):
-        out = arb.best_alone(None, disc(*alts), [], pair, 10.0)
-        return None if out is None else out[1][2]
+    def order(*alts):
+        return [r[2] for _, r in arb.alone_terms(None, disc(*alts), [], pair, 10.0)]
 
-    first = alt("first", -15.9, ("motor",))
-    assert best(first, alt("better", -40.0, ("motor",))) == "better"
+    own, other = alt("own", -15.9, ("motor",)), alt("other", -40.0, ("motor",))
+    assert order(own, alt("third", -20.0, ("motor",)), other) == ["own", "other", "third"]
     # Not one that fails held-out data, nor one on other stages while one acts on the pair's.
-    assert best(first, alt("overfit", -90.0, ("motor",), generalises=False)) == "first"
-    assert best(first, alt("sensor", -90.0, ("motor", "gap"))) == "first"
-    assert best(alt("weak", -3.0, ("motor",)), alt("sensor", -90.0, ("motor", "gap"))) == "sensor"
-    assert best(alt("weak", -3.0, ("motor",))) is None
+    assert order(own, alt("overfit", -90.0, ("motor",), generalises=False)) == ["own"]
+    assert order(own, alt("sensor", -90.0, ("motor", "gap"))) == ["own"]
+    assert order(alt("weak", -3.0, ("motor",)), alt("sensor", -90.0, ("motor", "gap"))) == [
+        "sensor"
+    ]
+    assert order(alt("weak", -3.0, ("motor",))) == []
+
+    # ``one_explanation`` drops the name at the first term alone the pair does not beat.
+    mech = SimpleNamespace(variant="stiction", id="stiction")
+    found = disc(own, other)
+    monkeypatch.setattr(arb, "discover", lambda ses, stage, fits: found)
+    monkeypatch.setattr(arb, "fits_of", lambda ses, others: None)
+    beats = {"own": True, "other": False}
+
+    def fake_against(ses, d, f_both, alone, res, others, threshold, names):
+        why = "" if beats[alone.name] else f"{alone.name} alone does as well"
+        return alone, res, why, -30.0, True
+
+    monkeypatch.setattr(arb, "_against", fake_against)
+    ses = SimpleNamespace(mechanism_stages=lambda m: ("motor",))
+
+    def run():
+        cand = Candidate("stiction", "stiction", ("motor",), 1, -50.0, 60.0, 0.9, 0.0, {}, {},
+                         "", selected=True)  # fmt: skip
+        d0 = SimpleNamespace(stage="motor", place="motor.mechanical", learned=None)
+        work = SimpleNamespace(
+            discoveries=[(d0, pair, {}, None)], selected=[mech], current={}, notes=[],
+            evidence={"stiction": {"delta_bic": -50.0}}, candidates=[cand], rivals={},
+        )  # fmt: skip
+        arb.one_explanation(ses, work, 10.0)
+        return work
+
+    work = run()
+    assert work.selected == [] and work.discoveries[0][0].name == "other"
+    assert work.notes == ["stiction: not reported: other alone does as well"]
+    beats["other"] = True
+    work = run()
+    assert work.selected == [mech] and work.discoveries[0][1] is pair
+    (note,) = work.notes
+    assert note.startswith("stiction: kept beside the learned term at motor.mechanical")
+    assert "a learned term at at_own alone (dBIC -30.0) and predict held-out data" in note

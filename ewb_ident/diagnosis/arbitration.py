@@ -158,65 +158,82 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
     that term, a learned term fitted without it by ``threshold`` in BIC and on held-out
     data (the learned terms' held-out residuals); otherwise it is dropped and the
     learned term fitted without it takes the discovery's place. The term without it is
-    the best of the discovery's expressions and places (:func:`best_alone`)."""
+    the discovery's own, else the first of its other expressions and places that the
+    pair does not beat (:func:`alone_terms`)."""
     for k, (disc, f_both, _, _) in enumerate(list(work.discoveries)):
         at = [m for m in work.selected if set(ses.mechanism_stages(m)) & set(f_both.stages)]
         if not at:
             continue
         others = [m for m in work.selected if m not in at]
         found = discover(ses, disc.stage, fits_of(ses, others))
-        best = None if found is None else best_alone(ses, found, others, f_both, threshold)
-        if best is None:
-            continue
-        alone, res = best
-        # Where the term alone acts at other stages, both on the stages of either (the
-        # held-out residuals of terms at different places are not comparable).
-        same = res[0].stages == f_both.stages
-        T = stage_order(set(res[0].stages) | set(f_both.stages))
-        pair_T, one_T = _on(ses, T, f_both, disc, others), _on(ses, T, res[0], alone, others)
-        gain = bic_evidence(pair_T, one_T, ses.sigma_tf)["delta_bic"]
-        pair, one = disc.learned.heldout_after, alone.learned.heldout_after
+        terms = [] if found is None else alone_terms(ses, found, others, f_both, threshold)
         names = ", ".join(m.variant for m in at)
-        if gain > -threshold:
-            why = (
-                f"a learned term at {alone.place} alone fits its stages as well as "
-                f"{names} with a learned term on top "
-                f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
-                + ("" if same else " (on the stages of either)")
-            )
-        elif same and one <= pair:
-            why = (
-                f"a learned term at {alone.place} alone predicts held-out data as well as "
-                f"{names} with a learned term on top (held-out residual "
-                f"{one / pair:.2f} of the pair's)"
-            )
-        else:  # the name stands, and says what it was weighed against
-            where = " and predict held-out data better" if same else " (on the stages of either)"
-            work.notes.append(
-                f"{names}: kept beside the learned term at {disc.place}: together they fit "
-                f"better than a learned term at {alone.place} alone (dBIC {gain:+.1f}){where}"
-            )
+        first = dropped = None
+        for t in terms:
+            weighed = _against(ses, disc, f_both, *t, others, threshold, names)
+            first = first or weighed
+            if weighed[2]:
+                dropped = weighed
+                break
+        if dropped is None:
+            if first is not None:  # the name stands, and says what it was weighed against
+                alone, _, _, gain, same = first
+                where = (" (on the stages of either)", " and predict held-out data better")
+                work.notes.append(
+                    f"{names}: kept beside the learned term at {disc.place}: together they "
+                    f"fit better than a learned term at {alone.place} alone (dBIC "
+                    f"{gain:+.1f}){where[same]}"
+                )
             continue
+        alone, res, why, _, _ = dropped
         _drop(work, disc.stage, at, why)
         work.discoveries[k] = (alone, *res)
         for st in res[0].stages:
             work.current[st] = res[0]
 
 
-def best_alone(ses: Session, disc, others, f_both, threshold: float):
-    """The best learned term without the catalog mechanism: of ``disc``'s distilled term
-    and its alternatives (other expressions, other places about as good) that generalise
-    and lower their stages' BIC by ``threshold``, the lowest BIC, on the stages of the
-    pair's fit ``f_both`` if any acts there. Returns ``(discovery, fit_learned result)``
-    or ``None``. The pair must beat the best learned term alone, not the first one
-    found: without a current sensor the motor's two places explain a load alike, and
-    the first can be the one whose distilled form fits the motor worse."""
+def _against(ses: Session, disc, f_both, alone, res, others, threshold: float, names: str):
+    """The pair (``disc``'s term on top of the catalog mechanisms ``names``, fitted as
+    ``f_both``) weighed against the learned term ``alone`` (fitted as ``res``): ``(alone,
+    res, why the name goes or "", dBIC of the pair, same stages)``."""
+    # Where the term alone acts at other stages, both on the stages of either (the
+    # held-out residuals of terms at different places are not comparable).
+    same = res[0].stages == f_both.stages
+    T = stage_order(set(res[0].stages) | set(f_both.stages))
+    pair_T, one_T = _on(ses, T, f_both, disc, others), _on(ses, T, res[0], alone, others)
+    gain = bic_evidence(pair_T, one_T, ses.sigma_tf)["delta_bic"]
+    pair, one = disc.learned.heldout_after, alone.learned.heldout_after
+    why = ""
+    if gain > -threshold:
+        why = (
+            f"a learned term at {alone.place} alone fits its stages as well as "
+            f"{names} with a learned term on top "
+            f"(dBIC {gain:+.1f} for the pair, threshold -{threshold:g})"
+            + ("" if same else " (on the stages of either)")
+        )
+    elif same and one <= pair:
+        why = (
+            f"a learned term at {alone.place} alone predicts held-out data as well as "
+            f"{names} with a learned term on top (held-out residual "
+            f"{one / pair:.2f} of the pair's)"
+        )
+    return alone, res, why, gain, same
+
+
+def alone_terms(ses: Session, disc, others, f_both, threshold: float) -> list:
+    """The learned terms without the catalog mechanism, in the order the pair is weighed
+    against them: of ``disc``'s distilled term and its alternatives (other expressions,
+    other places about as good) that generalise and lower their stages' BIC by
+    ``threshold``, those on the stages of the pair's fit ``f_both`` if any acts there
+    (else the first), the discovery's own first and the others by BIC. Each is
+    ``(discovery, fit_learned result)``. The pair must beat every learned term alone,
+    not only the first: without a current sensor the motor's two places explain a load
+    alike, and the first can be the one whose distilled form fits the motor worse."""
     tried = [d for d in (disc, *disc.alternatives()) if d.learned.groups]
     fits = [(d, r) for d in tried if d.distilled.generalises
             and (r := fit_learned(ses, d, others, threshold)) is not None]  # fmt: skip
-    same = [x for x in fits if x[1][0].stages == f_both.stages]
-    pool = same or fits[:1]
-    return min(pool, key=lambda x: x[1][1]["delta_bic"], default=None)
+    pool = [x for x in fits if x[1][0].stages == f_both.stages] or fits[:1]
+    return pool[:1] + sorted(pool[1:], key=lambda x: x[1][1]["delta_bic"])
 
 
 def promote(work, rival: tuple, generic_ev: dict[str, float]) -> None:
