@@ -668,6 +668,33 @@ def test_a_catalog_name_beside_a_term_at_other_stages_is_weighed_on_the_stages_o
 
 
 @pytest.mark.slow
+def test_a_catalog_name_is_weighed_on_the_stages_of_either_when_the_term_alone_acts_elsewhere(
+    tmp_path,
+):
+    """A preloaded return spring on the third probe (1 kHz PI loop, no current sensor):
+    `wedge_load_torque` and `stiction` with a learned motor load torque on top, where the
+    learned term alone acts at the angle sensor (the motor and gap stages). The two are
+    fitted on the stages of either and compared in BIC; the note says so, and the names
+    it keeps are the findings' (dBIC of the pair at or under the threshold)."""
+    import re
+
+    from ewb_ident.data.readers import read_trace
+    from validation_rigs import probe3_rig
+    from validation_rigs import uncatalogued_rig as ur
+
+    case = probe3_rig.make_case("return_spring", "a", 20261377, 0)
+    res = diagnose(read_trace(ur.write_case(case, tmp_path, "spring")))
+    either = [n for n in res.notes if n.endswith("(on the stages of either)")]
+    assert either
+    named = {f.effect for f in res.findings if f.catalog}
+    for note in either:
+        names = note.split(":")[0].split(", ")
+        gain = float(re.search(r"dBIC ([-+0-9.]+)", note).group(1))
+        assert (": kept beside" in note) == (set(names) <= named)
+        assert (gain <= -10) == (": kept beside" in note)
+
+
+@pytest.mark.slow
 def test_a_larger_gain_that_fails_a_heldout_fold_does_not_hide_a_term_that_generalises(
     tmp_path,
 ):
