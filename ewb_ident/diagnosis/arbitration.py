@@ -17,10 +17,10 @@ explain a stage, the catalog name is kept only when the data ask for it:
   the evidence threshold (``dBIC <= -threshold``, the rule every finding passes), and
   predict held-out data better than it (the pair's catalog parameters are fitted on
   every fold, which can only favour the pair). Otherwise one explanation (the learned
-  term, the best of its expressions and places) does what two claim to. Where the term
-  alone acts at other stages than the pair (a motor load torque against an angle
-  sensor's term), both are fitted on the stages of either and compared in BIC alone
-  (held-out residuals of terms at different places are not comparable).
+  term: the discovery's own, or another of its expressions and places) does what two
+  claim to. Where the term alone acts at other stages than the pair (a motor load torque
+  against an angle sensor's term), both are fitted on the stages of either and compared
+  in BIC alone (held-out residuals of terms at different places are not comparable).
 
 Both compare fits of the same stages and weights; a dropped catalog name becomes a rival
 the finding lists. :func:`promote` selects a held-back catalog rival in place of a
