@@ -661,7 +661,10 @@ def test_a_catalog_name_on_top_of_a_term_is_weighed_against_every_term_alone(mon
             distilled=SimpleNamespace(generalises=generalises), dbic=dbic, stages=stages,
         )  # fmt: skip
 
+    fitted = []
+
     def fake_fit(ses, d, others, threshold):
+        fitted.append(d.name)
         if d.dbic > -threshold:
             return None
         return (SimpleNamespace(stages=d.stages), {"delta_bic": d.dbic}, d.name)
@@ -719,3 +722,10 @@ def test_a_catalog_name_on_top_of_a_term_is_weighed_against_every_term_alone(mon
     (note,) = work.notes
     assert note.startswith("stiction: kept beside the learned term at motor.mechanical")
     assert "a learned term at at_own alone (dBIC -30.0) and predict held-out data" in note
+    # A name the discovery's own term already does as well as goes without fitting the
+    # other terms through the model.
+    beats["own"] = False
+    fitted.clear()
+    work = run()
+    assert work.selected == [] and work.discoveries[0][0].name == "own"
+    assert fitted == ["own"]

@@ -31,7 +31,7 @@ searches run again with the names the whole chain did not confirm set aside.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 from ewb_ident.data.stages import STAGE_OUTPUTS
@@ -220,20 +220,32 @@ def _against(ses: Session, disc, f_both, alone, res, others, threshold: float, n
     return alone, res, why, gain, same
 
 
-def alone_terms(ses: Session, disc, others, f_both, threshold: float) -> list:
+def alone_terms(ses: Session, disc, others, f_both, threshold: float) -> Iterator[tuple]:
     """The learned terms without the catalog mechanism, in the order the pair is weighed
     against them: of ``disc``'s distilled term and its alternatives (other expressions,
     other places about as good) that generalise and lower their stages' BIC by
     ``threshold``, those on the stages of the pair's fit ``f_both`` if any acts there
     (else the first), the discovery's own first and the others by BIC. Each is
-    ``(discovery, fit_learned result)``. The pair must beat every learned term alone,
-    not only the first: without a current sensor the motor's two places explain a load
-    alike, and the first can be the one whose distilled form fits the motor worse."""
-    tried = [d for d in (disc, *disc.alternatives()) if d.learned.groups]
-    fits = [(d, r) for d in tried if d.distilled.generalises
-            and (r := fit_learned(ses, d, others, threshold)) is not None]  # fmt: skip
-    pool = [x for x in fits if x[1][0].stages == f_both.stages] or fits[:1]
-    return pool[:1] + sorted(pool[1:], key=lambda x: x[1][1]["delta_bic"])
+    ``(discovery, fit_learned result)``, fitted through the model only when the pair is
+    weighed against it or needs it for the order (the first that the pair does not beat
+    ends the weighing). The pair must beat every learned term alone, not only the
+    first: without a current sensor the motor's two places explain a load alike, and
+    the first can be the one whose distilled form fits the motor worse."""
+    tried = (d for d in (disc, *disc.alternatives()) if d.learned.groups)
+    fits = ((d, r) for d in tried if d.distilled.generalises
+            and (r := fit_learned(ses, d, others, threshold)) is not None)  # fmt: skip
+    first = None
+    for x in fits:
+        if x[1][0].stages == f_both.stages:
+            yield x
+            break
+        first = first or x
+    else:  # none acts on the pair's stages: the first alone
+        if first is not None:
+            yield first
+        return
+    rest = [x for x in fits if x[1][0].stages == f_both.stages]
+    yield from sorted(rest, key=lambda x: x[1][1]["delta_bic"])
 
 
 def promote(work, rival: tuple, generic_ev: dict[str, float]) -> None:
