@@ -697,7 +697,7 @@ def test_a_catalog_name_on_top_of_a_term_is_weighed_against_every_term_alone(mon
 
     def fake_against(ses, d, f_both, alone, res, others, threshold, names):
         why = "" if beats[alone.name] else f"{alone.name} alone does as well"
-        return alone, res, why, -30.0, True
+        return why, -30.0, True
 
     monkeypatch.setattr(arb, "_against", fake_against)
     ses = SimpleNamespace(mechanism_stages=lambda m: ("motor",))

@@ -169,15 +169,15 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
         terms = [] if found is None else alone_terms(ses, found, others, f_both, threshold)
         names = ", ".join(m.variant for m in at)
         first = dropped = None
-        for t in terms:
-            weighed = _against(ses, disc, f_both, *t, others, threshold, names)
-            first = first or weighed
-            if weighed[2]:
-                dropped = weighed
+        for alone, res in terms:
+            why, gain, same = _against(ses, disc, f_both, alone, res, others, threshold, names)
+            first = first or (alone, gain, same)
+            if why:
+                dropped = (alone, res, why)
                 break
         if dropped is None:
             if first is not None:  # the name stands, and says what it was weighed against
-                alone, _, _, gain, same = first
+                alone, gain, same = first
                 where = (" (on the stages of either)", " and predict held-out data better")
                 work.notes.append(
                     f"{names}: kept beside the learned term at {disc.place}: together they "
@@ -185,7 +185,7 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
                     f"{gain:+.1f}){where[same]}"
                 )
             continue
-        alone, res, why, _, _ = dropped
+        alone, res, why = dropped
         _drop(work, disc.stage, at, why)
         work.discoveries[k] = (alone, *res)
         for st in res[0].stages:
@@ -194,8 +194,8 @@ def one_explanation(ses: Session, work: Any, threshold: float) -> None:
 
 def _against(ses: Session, disc, f_both, alone, res, others, threshold: float, names: str):
     """The pair (``disc``'s term on top of the catalog mechanisms ``names``, fitted as
-    ``f_both``) weighed against the learned term ``alone`` (fitted as ``res``): ``(alone,
-    res, why the name goes or "", dBIC of the pair, same stages)``."""
+    ``f_both``) weighed against the learned term ``alone`` (fitted as ``res``): ``(why
+    the name goes or "", dBIC of the pair, same stages)``."""
     # Where the term alone acts at other stages, both on the stages of either (the
     # held-out residuals of terms at different places are not comparable).
     same = res[0].stages == f_both.stages
@@ -217,7 +217,7 @@ def _against(ses: Session, disc, f_both, alone, res, others, threshold: float, n
             f"{names} with a learned term on top (held-out residual "
             f"{one / pair:.2f} of the pair's)"
         )
-    return alone, res, why, gain, same
+    return why, gain, same
 
 
 def alone_terms(ses: Session, disc, others, f_both, threshold: float) -> Iterator[tuple]:
