@@ -930,6 +930,51 @@ def test_a_current_reading_that_picks_up_the_voltage_is_learned_at_the_current_s
     assert top.heldout["excess_share"] >= 0.8
 
 
+HYST_WIDTH = 0.3  # a Hall sensor's core: a play of this share of the largest current
+HYST_GAIN = 0.1  # ... whose lag behind the current adds this share of it to the reading
+
+
+def test_the_current_and_the_force_each_have_their_change_since_they_last_reversed():
+    """A hysteresis in a signal's own history (a play of the current in a Hall sensor's
+    core, of the force in a load cell) needs that history as an input: the signal less
+    its value at its last reversal, as the angle has (``travel``)."""
+    from ewb_ident.diagnosis.filters import reversals
+    from ewb_ident.diagnosis.inputs import REVERSAL_SHARE, input_signals
+
+    trace, _, _ = _clean()
+    sig = input_signals(trace, {})
+    for name in ("current", "force"):
+        moved = sig[f"{name}_travel"]
+        expected = reversals(sig[name].values, REVERSAL_SHARE)[1]
+        np.testing.assert_allclose(moved.values, expected)
+        assert moved.kind == "signed" and moved.unit == sig[name].unit
+        assert reversals(sig[name].values, REVERSAL_SHARE)[0].max() >= 1  # it does reverse
+
+
+@pytest.mark.slow
+def test_a_current_reading_with_magnetic_hysteresis_is_learned_on_the_current_reversals():
+    """A Hall sensor whose core lags the current by a play (a rate-independent hysteresis
+    of width ``r``: the reading gains ``g (i - play_r(i))``, which restarts at each
+    reversal of the current and saturates at ``± g r``). It is in no catalog and depends
+    on no signal but the current's own history: the term is learned at the current sensor
+    on the current's change since it last reversed, follows the planted lag, and
+    generalises."""
+
+    def hysteresis(_, i):
+        r, y, out = HYST_WIDTH * float(np.max(np.abs(i))), 0.0, np.empty(i.size)
+        for k, v in enumerate(np.asarray(i, float)):
+            y = min(max(y, v - r), v + r)
+            out[k] = v - y
+        return HYST_GAIN * out
+
+    settings = SETTINGS | dict(sample_rate_hz=1000.0, seed=9, profile="steps")
+    top, truth = _sensor_learned("current_A", hysteresis, settings, 41)
+    assert top.place == "sensor.current_A" and "current_travel" in top.depends_on
+    assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.3 * np.sqrt(np.mean(truth**2))
+    assert top.heldout["excess_share"] >= 0.5
+    assert "hysteresis" in top.reading
+
+
 def test_reversals_count_from_each_extreme_and_ignore_a_dither_at_rest():
     from ewb_ident.diagnosis.filters import reversals
 

@@ -92,6 +92,7 @@ from ewb_ident.diagnosis.findings import (
     mechanism_start,
     ranked_stages,
     refitted_ctx,
+    rho_cap_of,
     status_evidence,
     stderr_of,
     with_summary,
@@ -644,9 +645,8 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
     nonlinear stage's output, a bias no mechanism should take the blame for). A catalog
     mechanism the chain did not confirm is tried again on top of those confirmed after
     it (two effects can each show in the chain only once the other is modelled: a
-    backlash under a hysteresis loop), before the learned terms. Returns the
-    findings kept, the chain evidence of each, and those the chain did not confirm.
-    """
+    backlash under a hysteresis loop), before the learned terms (:func:`rho_cap_of`).
+    Returns the findings kept, the chain evidence of each, and those not confirmed."""
     catalog = list(work.selected)
     learned = [term for _, _, _, term in work.discoveries]
     chain_ev: dict[str, dict[str, float]] = {}
@@ -674,7 +674,7 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
             explore=[False] * len(kept) + [fitted is not None],
             alt_starts=alt,
         )
-        ev = bic_evidence(f, prev, chain.sigma)
+        ev = bic_evidence(f, prev, chain.sigma, rho_max=rho_cap_of(m))
         if ev["delta_bic"] > -bic_threshold:
             last[m.variant] = (m, ev)
             return False

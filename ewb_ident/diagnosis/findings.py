@@ -8,12 +8,14 @@ from typing import Any
 
 import numpy as np
 
+from ewb_ident.data.metrics import RHO_MAX
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.discovery import (
     Discovery,
     basis_matrix,
     group_signals,
 )
+from ewb_ident.diagnosis.heldout import RHO_CAP
 from ewb_ident.diagnosis.inputs import OWN_SIGNAL, physical
 from ewb_ident.diagnosis.learned_spec import LearnedSpec, learned_term
 from ewb_ident.diagnosis.locate import (
@@ -32,7 +34,7 @@ from ewb_ident.inference.augmented import fit_mechanisms
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.mechanisms.base import RESOLVED_Z, fmt_pm
-from ewb_ident.mechanisms.learned import PLACES, term_at, with_bases
+from ewb_ident.mechanisms.learned import PLACES, LearnedTerm, term_at, with_bases
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -210,10 +212,18 @@ def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
         explore=[False] * len(ms) + [True],
         alt_starts=([disc.start] if disc.start else []) + ses.nominal_starts(T),
     )
-    ev = bic_evidence(f_new, f_cur, ses.sigma_tf) | status_evidence(f_new, f_cur)
+    ev = bic_evidence(f_new, f_cur, ses.sigma_tf, rho_max=RHO_CAP)
+    ev |= status_evidence(f_new, f_cur)
     if ev["delta_bic"] > -threshold:
         return None
     return f_new, ev, term_at(f_new.mechanisms, disc.place)
+
+
+def rho_cap_of(mech) -> float:
+    """The cap on the residual's lag-1 correlation in the evidence for ``mech``
+    (:func:`~ewb_ident.diagnosis.session.bic_evidence`): a learned term's, which passed
+    held-out folds, is theirs (:data:`~ewb_ident.diagnosis.heldout.RHO_CAP`)."""
+    return RHO_CAP if isinstance(mech, LearnedTerm) else RHO_MAX
 
 
 def learned_data(data: dict[str, Any], discoveries) -> dict[str, Any]:
@@ -340,8 +350,10 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
 
 def _source(signal: str) -> str:
     """The channel a signal is computed from (the heat and its histories: the current;
-    the reversals and the travel since one: the angle)."""
+    the reversals and the travel since one: the angle; a signal's change since it last
+    reversed: that signal)."""
     name = "current" if signal.startswith("heat") else signal.removesuffix("_rate")
+    name = name.removesuffix("_travel")
     name = "angle" if name in ("reversals", "travel") else name
     return {v: k for k, v in OWN_SIGNAL.items()}.get(name, "")
 

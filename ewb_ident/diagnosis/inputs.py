@@ -189,6 +189,10 @@ def input_signals(
         if "torque" in out:
             energy = _integral(np.abs(out["torque"].values * wd), dt)
             add("energy", energy, "J", "level", "the braking energy dissipated", "E")
+    for name in [k for k in ("current", "force") if k in out]:  # a hysteresis of its own
+        s, moved = out[name], reversals(out[name].values, REVERSAL_SHARE)[1]
+        words = f"the {name}'s change since it last reversed"
+        add(f"{name}_travel", moved, s.unit, "signed", words, f"Δ{s.symbol}_rev")
     return out
 
 
@@ -545,15 +549,11 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
     kind = col.form[0]
     if kind == "one":
         return "1", 1.0, ""
-    if kind == "prod":
+    if kind in ("prod", "prod2", "prodabs"):
         a, b = signals[col.form[1]], signals[col.form[2]]
-        return f"{a.symbol}·{b.symbol}", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
-    if kind == "prod2":
-        a, b = signals[col.form[1]], signals[col.form[2]]
-        return f"{a.symbol}·{b.symbol}²", 1.0 / (a.ref * b.ref**2), f"{a.unit}*{b.unit}^2"
-    if kind == "prodabs":
-        a, b = signals[col.form[1]], signals[col.form[2]]
-        return f"{a.symbol}·|{b.symbol}|", 1.0 / (a.ref * b.ref), f"{a.unit}*{b.unit}"
+        p, sb = (2, f"{b.symbol}²") if kind == "prod2" else (1, f"{b.symbol}")
+        sb = f"|{sb}|" if kind == "prodabs" else sb
+        return f"{a.symbol}·{sb}", 1.0 / (a.ref * b.ref**p), f"{a.unit}*{b.unit}" + "^2" * (p - 1)
     if kind == "prodtrig":
         a = signals[col.form[1]]
         return col.label, 1.0 / a.ref, a.unit

@@ -367,8 +367,16 @@ def bic_evidence(
     f0: FitResult,
     sigma: Mapping[str, np.ndarray],
     own: Sequence[str] | None = None,
+    rho_max: float = RHO_MAX,
 ) -> dict[str, float]:
     """Evidence for the mechanisms ``f1`` adds to ``f0`` (same stages and weights).
+
+    ``delta_bic`` counts the residuals as an AR(1) series of the lag-1 correlation of
+    ``f1``'s residual, clipped to ``rho_max``: a learned term, which has passed held-out
+    folds, is judged with the cap the folds use
+    (:data:`~ewb_ident.diagnosis.heldout.RHO_CAP`), since a smooth remainder of a large
+    mismatch would otherwise leave a handful of "independent" residuals whatever share
+    of it the term removes.
 
     ``explained_fraction`` is the share of the excess of ``f0``'s residual over the
     noise that ``f1`` removes; the noise expectation of the weighted residual sum of
@@ -379,7 +387,7 @@ def bic_evidence(
     n = f0.n
     dk = f1.k - f0.k
     rss0, rss1 = max(f0.rss, 1e-300), max(f1.rss, 1e-300)
-    rho = _lag1(f1, sigma)
+    rho = min(_lag1(f1, sigma), rho_max)
     n_eff = n * (1.0 - rho) / (1.0 + rho)
     dbic = n_eff * float(np.log(rss1 / rss0)) + dk * float(np.log(n_eff))
     dchi2 = rss0 - rss1

@@ -134,6 +134,18 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
     ),
     (
         "",
+        "current_travel",
+        "a term that restarts when the current reverses: magnetic hysteresis (a Hall "
+        "sensor's core remanence, the motor's iron)",
+    ),
+    (
+        "",
+        "force_travel",
+        "a term that restarts when the force reverses: hysteresis in the force path (a load "
+        "cell's, or the pads' and caliper's)",
+    ),
+    (
+        "",
         "reversals",
         "a change that steps at each reversal of the motion: a slip, or a loss or wear per stroke",
     ),
