@@ -22,7 +22,9 @@ Scoring (decided before the first run; nothing here set a threshold of the tool)
   force's, as its integral is, the low-passed squared current the heat; the count of the
   motion's reversals and the travel since one are the direction's, added with those
   inputs after the second probe's runs; the largest force so far is the force's, added
-  with that input after the third probe's blind run); reported beside it, not
+  with that input after the third probe's blind run; the current's and the force's
+  change since they last reversed are theirs, added with those inputs before the fifth
+  probe's blind run); reported beside it, not
   as the target (added after the run on seed 20261303, which it reran unchanged
   otherwise): the same, counting also the signals the finding names as ones the trace
   cannot tell from its own (``depends_on_equivalent``);
@@ -46,6 +48,7 @@ families outside the catalog and this rig's fourteen, written later as a blind p
 second blind probe after the first's report.
 ``--rig probe3`` from ``validation_rigs/probe3_rig.py``: six more again, a third blind probe.
 ``--rig probe4`` from ``validation_rigs/probe4_rig.py``: six more again, a fourth blind probe.
+``--rig probe5`` from ``validation_rigs/probe5_rig.py``: six more again, a fifth blind probe.
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ from typing import Any
 import numpy as np
 
 from studies.diagnosis_accuracy import _read
-from validation_rigs import probe2_rig, probe3_rig, probe4_rig, probe_rig
+from validation_rigs import probe2_rig, probe3_rig, probe4_rig, probe5_rig, probe_rig
 from validation_rigs import uncatalogued_rig as ur
 
 #: The independent rigs the cases come from (``--rig``): the fourteen families of the
@@ -73,6 +76,7 @@ RIGS = {
     "probe2": probe2_rig,
     "probe3": probe3_rig,
     "probe4": probe4_rig,
+    "probe5": probe5_rig,
 }
 
 HERE = Path(__file__).resolve().parent
@@ -94,12 +98,12 @@ PER_NUISANCE = 4
 HELD = {"sensor_lowpass", ("supply_sag", "a"), "thrust_bearing_friction"}
 #: Signals of the tool's findings taken as the planted term's (truth vocabulary).
 SAME: dict[str, set[str]] = {
-    "current": {"current", "direction"},
+    "current": {"current", "direction", "current_travel"},
     "speed": {"speed", "direction"},
     "angle": {"angle"},
     "x": {"x"},
     "x_rate": {"x_rate"},
-    "force": {"force", "force_history", "force_integral", "force_peak"},
+    "force": {"force", "force_history", "force_integral", "force_peak", "force_travel"},
     "force_rate": {"force_rate", "force"},
     "torque": {"torque", "force"},
     "torque_rate": {"torque_rate", "torque", "force_rate"},
