@@ -598,6 +598,41 @@ def test_a_finding_whose_fits_did_not_converge_says_so(monkeypatch):
     assert "stopped before converging" in found.explanation
 
 
+def test_learned_terms_alone_are_counted_with_the_held_out_folds_cap_on_the_lag1():
+    """A smooth remainder (lag-1 0.99) leaves ``n (1 - rho) / (1 + rho)`` "independent"
+    residuals: with catalog mechanisms the cap is 0.98, with learned terms alone (which
+    passed held-out folds) the folds' 0.9; a term removing 80 % of the residual then
+    passes the evidence threshold that it missed at 0.98."""
+    from types import SimpleNamespace
+
+    from ewb_ident.data.metrics import RHO_MAX
+    from ewb_ident.diagnosis.heldout import RHO_CAP
+    from ewb_ident.diagnosis.session import bic_evidence, rho_cap_of
+    from ewb_ident.mechanisms import Backlash
+    from ewb_ident.mechanisms.learned import LearnedTerm
+
+    n = 300
+    smooth = 20.0 * np.sin(np.linspace(0.0, 3.0 * np.pi, n))  # lag-1 above 0.99
+
+    def fit(scale, k):
+        r = scale * smooth
+        return SimpleNamespace(n=n, k=k, rss=float(r @ r), residuals=[{"theta_deg": r}],
+                               channel_rss={"theta_deg": float(r @ r)})  # fmt: skip
+
+    f0, f1, sigma = fit(1.0, 5), fit(np.sqrt(0.2), 6), {"theta_deg": np.ones(n)}
+    for cap in (RHO_MAX, RHO_CAP):
+        ev = bic_evidence(f1, f0, sigma, rho_max=cap)
+        n_eff = n * (1 - cap) / (1 + cap)
+        assert ev["n_effective"] == pytest.approx(n_eff)
+        assert ev["delta_bic"] == pytest.approx(n_eff * np.log(0.2) + np.log(n_eff))
+    assert bic_evidence(f1, f0, sigma)["delta_bic"] > -10 > bic_evidence(
+        f1, f0, sigma, rho_max=RHO_CAP
+    )["delta_bic"]
+    term = LearnedTerm(place="motor.electrical", names=("i",), scales=(1.0,), coef=np.ones(1))
+    assert rho_cap_of([term]) == RHO_CAP
+    assert rho_cap_of([term, Backlash()]) == rho_cap_of([]) == RHO_MAX
+
+
 def test_the_search_penalty_is_the_extended_bic_of_the_distilled_choice():
     """Choosing k terms among M library forms adds 2 ln C(M, k) to the expression's BIC
     against a catalog law fixed beforehand; nothing when nothing was chosen."""

@@ -20,6 +20,7 @@ from ewb_ident.diagnosis.session import (
     chain_baseline,
     chain_metrics,
     metrics_json,
+    rho_cap_of,
     stage_order,
 )
 from ewb_ident.inference.augmented import fit_mechanisms
@@ -47,7 +48,8 @@ def corrected_of(trace: Trace, chain_fits, data, sigma, discoveries=()) -> Corre
     if not f1.mechanisms:
         return None
     notes = () if f1.converged else ("the corrected whole-chain fit did not converge",)
-    return corrected_record(trace, f0, f1, data, bic_evidence(f1, f0, sigma), notes, docs)
+    ev = bic_evidence(f1, f0, sigma, rho_max=rho_cap_of(f1.mechanisms))
+    return corrected_record(trace, f0, f1, data, ev, notes, docs)
 
 
 def corrected_record(trace: Trace, f0, f1, data, ev, notes, learned=()) -> CorrectedFit:
@@ -424,7 +426,7 @@ def fit_corrected(
         docs = [learned_doc(s, s.equation(s.signals_on(trace, f1.values))) for s in final]
     except TermError as err:
         raise DiagnoseError(str(err)) from None
-    ev = bic_evidence(f1, f0, sigma)
+    ev = bic_evidence(f1, f0, sigma, rho_max=rho_cap_of(f1.mechanisms))
     spread = merged_spread(s.spread for s in learned)
     if not f1.converged:
         notes.append("the corrected whole-chain fit did not converge")

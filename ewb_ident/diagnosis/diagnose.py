@@ -92,7 +92,6 @@ from ewb_ident.diagnosis.findings import (
     mechanism_start,
     ranked_stages,
     refitted_ctx,
-    rho_cap_of,
     status_evidence,
     stderr_of,
     with_summary,
@@ -112,6 +111,7 @@ from ewb_ident.diagnosis.session import (
     chain_metrics,
     chain_prefixed,
     fitted_mechanism,
+    rho_cap_of,
 )
 from ewb_ident.diagnosis.signatures import not_generalised
 from ewb_ident.inference.augmented import fit_mechanisms
@@ -674,7 +674,7 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
             explore=[False] * len(kept) + [fitted is not None],
             alt_starts=alt,
         )
-        ev = bic_evidence(f, prev, chain.sigma, rho_max=rho_cap_of(m))
+        ev = bic_evidence(f, prev, chain.sigma, rho_max=rho_cap_of([m]))
         if ev["delta_bic"] > -bic_threshold:
             last[m.variant] = (m, ev)
             return False

@@ -8,14 +8,12 @@ from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.metrics import RHO_MAX
 from ewb_ident.data.stages import MAIN_CHANNEL, STAGE_WORDS
 from ewb_ident.diagnosis.discovery import (
     Discovery,
     basis_matrix,
     group_signals,
 )
-from ewb_ident.diagnosis.heldout import RHO_CAP
 from ewb_ident.diagnosis.inputs import OWN_SIGNAL, physical
 from ewb_ident.diagnosis.learned_spec import LearnedSpec, learned_term
 from ewb_ident.diagnosis.locate import (
@@ -28,13 +26,20 @@ from ewb_ident.diagnosis.locate import (
     summary_text,
 )
 from ewb_ident.diagnosis.result import Finding
-from ewb_ident.diagnosis.session import SEPARATE, Session, bic_evidence, stage_order, stall_torque
+from ewb_ident.diagnosis.session import (
+    SEPARATE,
+    Session,
+    bic_evidence,
+    rho_cap_of,
+    stage_order,
+    stall_torque,
+)
 from ewb_ident.diagnosis.signatures import reading
 from ewb_ident.inference.augmented import fit_mechanisms
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.mechanisms import AbstractMechanism
 from ewb_ident.mechanisms.base import RESOLVED_Z, fmt_pm
-from ewb_ident.mechanisms.learned import PLACES, LearnedTerm, term_at, with_bases
+from ewb_ident.mechanisms.learned import PLACES, term_at, with_bases
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -212,18 +217,12 @@ def fit_learned(ses: Session, disc: Discovery, selected, threshold: float):
         explore=[False] * len(ms) + [True],
         alt_starts=([disc.start] if disc.start else []) + ses.nominal_starts(T),
     )
-    ev = bic_evidence(f_new, f_cur, ses.sigma_tf, rho_max=RHO_CAP)
+    term = term_at(f_new.mechanisms, disc.place)
+    ev = bic_evidence(f_new, f_cur, ses.sigma_tf, rho_max=rho_cap_of([term]))
     ev |= status_evidence(f_new, f_cur)
     if ev["delta_bic"] > -threshold:
         return None
-    return f_new, ev, term_at(f_new.mechanisms, disc.place)
-
-
-def rho_cap_of(mech) -> float:
-    """The cap on the residual's lag-1 correlation in the evidence for ``mech``
-    (:func:`~ewb_ident.diagnosis.session.bic_evidence`): a learned term's, which passed
-    held-out folds, is theirs (:data:`~ewb_ident.diagnosis.heldout.RHO_CAP`)."""
-    return RHO_CAP if isinstance(mech, LearnedTerm) else RHO_MAX
+    return f_new, ev, term
 
 
 def learned_data(data: dict[str, Any], discoveries) -> dict[str, Any]:

@@ -22,6 +22,7 @@ from ewb_ident.data.stages import (
 )
 from ewb_ident.data.trace import InputError, Trace
 from ewb_ident.diagnosis.filters import denoised
+from ewb_ident.diagnosis.heldout import RHO_CAP
 from ewb_ident.diagnosis.locate import (
     FLOOR_SCALE,
     StageCheck,
@@ -35,6 +36,7 @@ from ewb_ident.inference.least_squares import start_of_checked_trace as start_of
 from ewb_ident.inference.problem import default_free
 from ewb_ident.inference.residuals import FORCED_INPUT, carried_noise
 from ewb_ident.mechanisms import AbstractMechanism
+from ewb_ident.mechanisms.learned import LearnedTerm
 from ewb_ident.model.integrate import motor_angle_rad
 from ewb_ident.model.params import PARAMS, EWBParams
 from ewb_ident.model.physics import clamp_force
@@ -415,6 +417,15 @@ def bic_evidence(
         "residual_lag1_after": rho,
         "n_params_added": float(dk),
     }
+
+
+def rho_cap_of(mechanisms: Sequence[AbstractMechanism]) -> float:
+    """The cap on the residual's lag-1 correlation in the evidence for adding
+    ``mechanisms`` (:func:`bic_evidence`): learned terms alone, which passed held-out
+    folds, are judged with the folds' (:data:`~ewb_ident.diagnosis.heldout.RHO_CAP`);
+    anything with a catalog mechanism, which has no held-out folds, with ``RHO_MAX``."""
+    learned = bool(mechanisms) and all(isinstance(m, LearnedTerm) for m in mechanisms)
+    return RHO_CAP if learned else RHO_MAX
 
 
 def _lag1(f: FitResult, sigma: Mapping[str, np.ndarray]) -> float:
