@@ -625,9 +625,11 @@ def test_learned_terms_alone_are_counted_with_the_held_out_folds_cap_on_the_lag1
         n_eff = n * (1 - cap) / (1 + cap)
         assert ev["n_effective"] == pytest.approx(n_eff)
         assert ev["delta_bic"] == pytest.approx(n_eff * np.log(0.2) + np.log(n_eff))
-    assert bic_evidence(f1, f0, sigma)["delta_bic"] > -10 > bic_evidence(
-        f1, f0, sigma, rho_max=RHO_CAP
-    )["delta_bic"]
+    assert (
+        bic_evidence(f1, f0, sigma)["delta_bic"]
+        > -10
+        > bic_evidence(f1, f0, sigma, rho_max=RHO_CAP)["delta_bic"]
+    )
     term = LearnedTerm(place="motor.electrical", names=("i",), scales=(1.0,), coef=np.ones(1))
     assert rho_cap_of([term]) == RHO_CAP
     assert rho_cap_of([term, Backlash()]) == rho_cap_of([]) == RHO_MAX
