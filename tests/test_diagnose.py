@@ -681,6 +681,25 @@ def test_a_fade_keeps_its_name_against_a_learned_disc_speed_term(seed, case, rel
     assert any(why in n for n in kept), res.notes
 
 
+@pytest.mark.slow
+def test_a_screened_name_given_up_for_a_learned_term_leaves_its_stage_located():
+    """A speed-dependent friction under the location test's thresholds (3.1x the noise,
+    widened study seed 20261385 case 69): the targeted friction test finds it, and a
+    learned term explains it better on held-out data, so the name goes. The stage the
+    name located then goes to discovery: the learned term is the finding, the name its
+    rival, the mismatch located by the name's test, and the verdict is not ``none``
+    (it was, with nothing reported, before)."""
+    from studies.diagnosis_accuracy import case_plan, make_case
+
+    trace, *_ = make_case(69, case_plan()[69][1], seed=20261385, widen=True)
+    res = diagnose(trace)
+    assert res.verdict == "unexplained"
+    (top,) = res.findings
+    assert not top.catalog and top.place and top.stage == "torque"
+    assert "friction_speed" in [r[0].split("[")[0] for r in top.alternatives]
+    assert any("targeted test of friction_speed" in m.summary for m in res.mismatches)
+
+
 def test_a_catalog_name_on_top_of_a_term_is_weighed_against_every_term_alone(monkeypatch):
     """The learned terms a catalog mechanism with a term on top must beat: the
     discovery's own first, then its other expressions and places by BIC, only those

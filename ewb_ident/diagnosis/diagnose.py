@@ -168,12 +168,12 @@ def diagnose(
 
     Notes
     -----
-    Each call compiles models for its trace's shape and the mechanisms it tries; a process
-    diagnosing traces of many shapes should release them in between
-    (:func:`ewb_ident.runtime.programs.release`, as ``studies/diagnosis_accuracy.py`` does),
-    or compiled code accumulates until the kernel's limit on memory maps. With the on-disk
-    program cache, the programs the last diagnosis of a trace of this length and these
-    channels used are loaded ahead (:func:`~ewb_ident.runtime.store.prefetching`).
+    Each call compiles models for its trace's shape and the mechanisms it tries: release
+    them between traces of many shapes (:func:`ewb_ident.runtime.programs.release`, as
+    ``studies/diagnosis_accuracy.py`` does), or they accumulate up to the kernel's limit
+    on memory maps. With the on-disk program cache, the programs the last diagnosis of a
+    trace of this length and these channels used are loaded ahead
+    (:func:`~ewb_ident.runtime.store.prefetching`).
     """
     trace = check_trace(trace)
     # The channels name the work too: the first program (a fit's) takes them as data.
@@ -584,14 +584,14 @@ def _form_spread(work: _Work, added) -> dict[str, float]:
 
 def _unknown(ses: Session, work: _Work, any_flagged: bool, bic_threshold: float) -> None:
     """Step 4: discovery (:mod:`ewb_ident.diagnosis.discovery`) at each stage still
-    located, unless a held back catalog rival removes as much as the discovered term
-    does (then the rival is promoted)."""
+    located (or whose catalog names went to a learned term: :func:`second_opinion`),
+    unless a held back catalog rival removes as much as the discovered term does."""
     # Only a residual clearly above the noise (not merely serially correlated) calls for
     # physics beyond the catalog once a mechanism has been added: what remains at the
     # noise level then is the approximation of the added physics.
-    still = (
-        located_stages(ses, work.current, structured=not work.selected) if any_flagged else set()
-    )
+    still = set(work.rivals)
+    if any_flagged:
+        still |= located_stages(ses, work.current, structured=not work.selected)
     remaining = ranked_stages(ses, work.current, still)
     done: set[str] = set()
     for s in remaining[:MAX_CORRECTIONS]:
@@ -711,22 +711,22 @@ def _confirm(ses: Session, chain: _Chain, work: _Work, bic_threshold: float):
 
 def _screened_cells(cells, added, flagged, work: _Work) -> list[Mismatch]:
     """The mismatch a confirmed screened mechanism located where the location test
-    flagged nothing: its stage's most severe cell, flagged, with the evidence in words
-    (a diagnosis that names physics has located a mismatch: never ``none``)."""
+    flagged nothing (or a learned term that explains it better in its place, the
+    mechanism its rival): its stage's most severe cell, flagged, with the evidence in
+    words (a diagnosis that names physics has located a mismatch: never ``none``)."""
     out: list[Mismatch] = []
-    stages = {m.stage for m in flagged}
+    stages = {m.stage for m in flagged} | ({m.stage for m in added} - {c.stage for c in cells})
     for mech in added:
-        if not getattr(mech, "SCREENED", False) or mech.stage in stages:
+        screened = getattr(mech, "SCREENED", False)
+        rival = next(iter(work.rivals.get(mech.stage, [])), None) if not screened else None
+        if not (screened or rival) or mech.stage in stages:
             continue
-        own = [c for c in cells if c.stage == mech.stage]
-        if not own:
-            continue
-        worst = max(own, key=lambda c: c.score)
-        ev = work.evidence[mech.variant]
+        worst = max((c for c in cells if c.stage == mech.stage), key=lambda c: c.score)
+        name, dbic = (mech.id, work.evidence[mech.variant]["delta_bic"]) if screened else rival
         summary = (
             f"{worst.summary} Under the location test's thresholds (the refitted friction "
-            f"coefficient absorbs most of it); located by the targeted test of "
-            f"{mech.id} (ΔBIC {ev['delta_bic']:.0f})."
+            f"coefficient absorbs most of it); located by the targeted test of {name} "
+            f"(ΔBIC {dbic:.0f}){'' if screened else ', which a learned term explains better'}."
         ).strip()
         out.append(Mismatch(**{**worst.__dict__, "flagged": True, "summary": summary}))
         stages.add(mech.stage)
