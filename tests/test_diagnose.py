@@ -700,6 +700,39 @@ def test_a_screened_name_given_up_for_a_learned_term_leaves_its_stage_located():
     assert any("targeted test of friction_speed" in m.summary for m in res.mismatches)
 
 
+def test_a_name_beside_a_term_goes_when_a_term_alone_fits_or_predicts_as_well(monkeypatch):
+    """``_against``: the pair (a catalog name with a learned term on top) must beat the
+    learned term alone by the evidence threshold in BIC and, on the same stages, leave
+    less held-out residual; on the stages of either, BIC alone decides (held-out
+    residuals of terms at different places are not comparable)."""
+    from types import SimpleNamespace
+
+    import ewb_ident.diagnosis.arbitration as arb
+
+    monkeypatch.setattr(arb, "_on", lambda ses, T, fitted, disc, others: fitted)
+    gain = {"dbic": 0.0}
+    monkeypatch.setattr(arb, "bic_evidence", lambda a, b, s: {"delta_bic": gain["dbic"]})
+    ses = SimpleNamespace(sigma_tf={})
+
+    def weigh(dbic, pair_after, one_after, same=True):
+        gain["dbic"] = dbic
+        both = SimpleNamespace(stages=("motor",))
+        alone = SimpleNamespace(stages=("motor",) if same else ("motor", "gap"))
+        disc = SimpleNamespace(learned=SimpleNamespace(heldout_after=pair_after))
+        one = SimpleNamespace(learned=SimpleNamespace(heldout_after=one_after), place="p")
+        return arb._against(ses, disc, both, one, (alone,), [], 10.0, "stiction")
+
+    why, dbic, same = weigh(-5.0, 1.0, 2.0)
+    assert why.startswith("a learned term at p alone fits its stages as well as stiction")
+    assert dbic == -5.0 and same
+    why, _, _ = weigh(-30.0, 1.0, 0.8)
+    assert why.startswith("a learned term at p alone predicts held-out data as well as")
+    assert "held-out residual 0.80 of the pair's" in why
+    assert weigh(-30.0, 1.0, 1.5) == ("", -30.0, True)
+    assert weigh(-30.0, 1.0, 0.8, same=False) == ("", -30.0, False)
+    assert weigh(-5.0, 1.0, 0.8, same=False)[0].endswith("(on the stages of either)")
+
+
 def test_a_catalog_name_on_top_of_a_term_is_weighed_against_every_term_alone(monkeypatch):
     """The learned terms a catalog mechanism with a term on top must beat: the
     discovery's own first, then its other expressions and places by BIC, only those
