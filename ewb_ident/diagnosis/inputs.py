@@ -549,11 +549,10 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
     kind = col.form[0]
     if kind == "one":
         return "1", 1.0, ""
-    if kind in ("prod", "prod2", "prodabs"):
-        a, b = signals[col.form[1]], signals[col.form[2]]
-        p, sb = (2, f"{b.symbol}²") if kind == "prod2" else (1, f"{b.symbol}")
-        sb = f"|{sb}|" if kind == "prodabs" else sb
-        return f"{a.symbol}·{sb}", 1.0 / (a.ref * b.ref**p), f"{a.unit}*{b.unit}" + "^2" * (p - 1)
+    if kind in PRODUCT:  # the carrier times the one-input form of the other signal
+        a = signals[col.form[1]]
+        expr, factor, unit = physical(Column("", col.form[2], None, PRODUCT[kind]), signals)
+        return f"{a.symbol}·{expr}", factor / a.ref, f"{a.unit}*{unit}"
     if kind == "prodtrig":
         a = signals[col.form[1]]
         return col.label, 1.0 / a.ref, a.unit
