@@ -715,11 +715,11 @@ def _screened_cells(cells, added, flagged, work: _Work) -> list[Mismatch]:
     mechanism its rival): its stage's most severe cell, flagged, with the evidence in
     words (a diagnosis that names physics has located a mismatch: never ``none``)."""
     out: list[Mismatch] = []
-    stages = {m.stage for m in flagged} | ({m.stage for m in added} - {c.stage for c in cells})
+    skip = {m.stage for m in flagged} | ({m.stage for m in added} - {c.stage for c in cells})
     for mech in added:
         screened = getattr(mech, "SCREENED", False)
         rival = next(iter(work.rivals.get(mech.stage, [])), None) if not screened else None
-        if not (screened or rival) or mech.stage in stages:
+        if not (screened or rival) or mech.stage in skip:
             continue
         worst = max((c for c in cells if c.stage == mech.stage), key=lambda c: c.score)
         name, dbic = (mech.id, work.evidence[mech.variant]["delta_bic"]) if screened else rival
@@ -729,7 +729,7 @@ def _screened_cells(cells, added, flagged, work: _Work) -> list[Mismatch]:
             f"(ΔBIC {dbic:.0f}){'' if screened else ', which a learned term explains better'}."
         ).strip()
         out.append(Mismatch(**{**worst.__dict__, "flagged": True, "summary": summary}))
-        stages.add(mech.stage)
+        skip.add(mech.stage)
     return out
 
 
