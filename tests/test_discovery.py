@@ -107,17 +107,47 @@ def test_a_periodic_term_is_found_at_the_period_the_residual_shows():
     res = diagnose(runout_trace())
     (top,) = res.findings
     assert top.place == "gap" and top.depends_on == ("angle",)
-    m = re.fullmatch(
-        r"Δθ = \+?([0-9.e+-]+)·sin\(2πθ/([0-9.]+)° [+-][0-9.]+\) \[deg\]", top.equation
-    )
+    th = _clean()[1].states["theta_deg"]
+    _assert_harmonic(top, r"Δθ = (.+)·sin\(2πθ/(.+)° .+\) \[deg\]", th, RUNOUT_DEG,
+                     RUNOUT_PERIOD_DEG, 0.7)  # fmt: skip
+
+
+def _assert_harmonic(top, pattern: str, pos, amp: float, period: float, phase: float, unit=1.0):
+    """The finding's equation is one harmonic of ``pos`` at the planted period (its unit
+    ``unit`` of the position's) and amplitude, and its series is the planted one."""
+    m = re.fullmatch(pattern, top.equation)
     assert m, top.equation
-    assert float(m.group(2)) == pytest.approx(RUNOUT_PERIOD_DEG, rel=0.01)
-    assert float(m.group(1)) == pytest.approx(RUNOUT_DEG, rel=0.15)
-    trace, run, _ = _clean()
-    th = run.states["theta_deg"]
-    truth = RUNOUT_DEG * np.sin(2 * np.pi * th / RUNOUT_PERIOD_DEG + 0.7)
+    assert float(m.group(2)) * unit == pytest.approx(period, rel=0.01)
+    assert float(m.group(1)) == pytest.approx(amp, rel=0.15)
+    truth = amp * np.sin(2 * np.pi * pos / period + phase)
     assert np.sqrt(np.mean((top.term_series - truth) ** 2)) < 0.25 * np.sqrt(np.mean(truth**2))
     assert top.heldout["excess_share"] >= 0.8
+
+
+SCALE_PITCH_M = 0.27e-3  # a period in x in no list, some six cycles over the stroke
+SCALE_ERROR_M = 8e-6
+
+
+def scale_trace():
+    """A linear scale's interpolation error: the displacement reads
+    ``x + A sin(2 pi x / P + phase)``, periodic in x, not in the angle (the gap curve
+    stretches one against the other by a factor of three over the stroke)."""
+    trace, run, _ = _clean()
+    x = run.states["x_m"]
+    return _with({"x_m": x + SCALE_ERROR_M * np.sin(2 * np.pi * x / SCALE_PITCH_M + 0.4)}, "scale")
+
+
+def test_a_term_periodic_in_the_displacement_is_found_in_x_not_in_the_angle():
+    """The periodogram runs in each position a place feels: a scale's error, periodic
+    in x, is learned at the displacement sensor on x at the planted period (the runout
+    above, periodic in the angle at the same stage, stays on the angle)."""
+    res = diagnose(scale_trace())
+    (top,) = res.findings
+    assert top.place == "sensor.x_m" and top.depends_on == ("x",)
+    x = _clean()[1].states["x_m"]
+    _assert_harmonic(top, r"Δx_m = (.+)·sin\(2πx/(.+) mm .+\) \[m\]", x, SCALE_ERROR_M,
+                     SCALE_PITCH_M, 0.4, unit=1e-3)  # fmt: skip
+    assert "scale" in top.reading
 
 
 RIPPLE = 0.04  # the clamping force varies by 4 % around a disc turn

@@ -11,14 +11,14 @@ model something is missing and what it depends on, without a list of candidate p
 2. **Inputs.** The term is a function of every signal the trace and the model supply
    (:func:`input_signals`): recorded channels and model states, their rates, the
    directions of motion, integrals and low-passed histories (heat, energy, sliding
-   distance, force history), elapsed time, and angles taken modulo candidate periods.
+   distance, force history), elapsed time, and positions taken modulo candidate periods.
    A stage's own outputs enter as the model's noise-free predictions (a channel's noise
    must not predict itself).
 3. **The learned function** is an additive model: for each input, a flexible basis
    (piecewise-linear hinges for levels; odd powers and a smooth sign for signed
-   signals; harmonics for angles, at the periods the residual shows: a periodogram in
-   the angle, :func:`~ewb_ident.diagnosis.places.angle_periods`, not a list), so any
-   smooth or switching dependence on one input and sums over inputs are representable.
+   signals; harmonics for positions, at the periods the residual shows: a periodogram
+   in the angle and in x, :func:`~ewb_ident.diagnosis.places.position_periods`, not a
+   list), so any smooth or switching dependence on one input and sums over inputs are representable.
    It is fitted through the model: the term's effect on the stage's residuals is the
    model's exact linear response at the place (diagonal for a static place, the motor's
    impulse response for the motor's equations, both the output and the downstream input
@@ -77,7 +77,6 @@ from ewb_ident.diagnosis.inputs import (
     stacked,
 )
 from ewb_ident.diagnosis.places import (
-    angle_periods,
     column_span,
     is_local,
     linearised,
@@ -86,6 +85,7 @@ from ewb_ident.diagnosis.places import (
     own_sample_channels,
     place_stages,
     places_of,
+    position_periods,
 )
 from ewb_ident.diagnosis.session import model_channels
 from ewb_ident.mechanisms.learned import PLACES
@@ -361,7 +361,7 @@ def learn_place(d: Design, groups: Mapping[str, list[Column]], place: str, sig=N
         tried = []
         for g in usable:
             if g in chosen or ("@" in g and any("@" in c for c in chosen)):
-                continue  # one period of the angle at most
+                continue  # one period at most
             val, _ = d.best_heldout(_column_index(d, groups, {*chosen, g}))
             tried.append((val, g))
         if not tried:
@@ -570,7 +570,7 @@ def discover(ses, stage: str, fits_of) -> Discovery | None:
         raw = own_sample_channels(trace, model, stages)
         sig = input_signals(trace, model, fine, raw)
         sig = {k: v for k, v in sig.items() if k not in NOT_INPUTS.get(place, ())}
-        groups = learned_groups(sig, carriers_of(place), angle_periods(ses, fit, place, sig))
+        groups = learned_groups(sig, carriers_of(place), position_periods(ses, fit, place, sig))
         d = _design(ses, fit, place, groups, fold, stage)
         if d is None:
             continue

@@ -251,7 +251,7 @@ def learned_finding(ses, disc: Discovery, term, f_new, ev, flagged, before, afte
     ch = MAIN_CHANNEL[stage]
     mw = _metric_words(ch, before, after)
     ho = disc.distilled
-    hyp = reading(disc.place, disc.depends_on)
+    hyp = reading(disc.place, disc.depends_on, disc.columns)
     terms = []
     for j, c in enumerate(disc.columns):
         expr, factor, unit = physical(c, disc.signals)

@@ -384,10 +384,13 @@ def trig_products(c: Signal, s: Signal, arg: tuple, signals) -> list[Column]:
 
 
 def periodic(s: Signal, period: float, signals) -> list[Column]:
-    """A sine and cosine of the angle ``s`` with ``period`` (degrees)."""
+    """A sine and cosine of the position ``s`` with ``period`` (in its unit; a
+    displacement's shown in mm)."""
+    shown = f"{period:.4g}°" if s.unit == "deg" else f"{period * 1e3:.4g} mm"
+    if s.unit not in ("deg", "m"):
+        shown = f"{period:.4g} {s.unit}"
     return [
-        _col(f"{f}(2π{s.symbol}/{period:.4g}°)", s.name, ("period", period, f), signals)
-        for f in TRIG
+        _col(f"{f}(2π{s.symbol}/{shown})", s.name, ("period", period, f), signals) for f in TRIG
     ]
 
 
@@ -443,11 +446,12 @@ def _hinges(s: Signal, shares: Sequence[float], signals) -> list[Column]:
 def learned_groups(
     signals: Mapping[str, Signal],
     carriers: Sequence[str] = (),
-    periods: Sequence[float] = (),
+    periods: Mapping[str, Sequence[float]] | None = None,
 ) -> dict[str, list[Column]]:
     """The flexible basis of the learned function, one group of columns per input (and
-    per period of the angle in ``periods``, deg), and per carrier times each other
-    input."""
+    per period of a position in ``periods``, ``{signal: periods}`` in its unit), and per
+    carrier times each other input."""
+    periods = periods or {}
     groups: dict[str, list[Column]] = {"constant": [Column("1", "constant", None, ("one",))]}
     for cname in carriers:
         c = signals.get(cname)
@@ -460,11 +464,8 @@ def learned_groups(
                 groups[f"{cname}*{s.name}"] = [
                     col for k in (1, 2) for col in trig_products(c, s, ("harm", k), signals)
                 ]
-            elif s.kind == "angle" and s.name != cname:
-                for P in periods:
-                    groups[f"{cname}*{s.name}@{P:.4g}"] = trig_products(
-                        c, s, ("period", P), signals
-                    )
+            for P in periods.get(s.name, ()) if s.name != cname else ():
+                groups[f"{cname}*{s.name}@{P:.4g}"] = trig_products(c, s, ("period", P), signals)
     for s in signals.values():
         if s.kind == "signed":
             groups[s.name] = _signed(s, signals)
@@ -474,9 +475,8 @@ def learned_groups(
             groups[s.name] = [_col(s.symbol, s.name, ("pow", 1), signals)] + _hinges(
                 s, KNOTS, signals
             )
-            if s.kind == "angle":
-                for P in periods:
-                    groups[f"{s.name}@{P:.4g}"] = periodic(s, P, signals)
+        for P in periods.get(s.name, ()):
+            groups[f"{s.name}@{P:.4g}"] = periodic(s, P, signals)
     return groups
 
 

@@ -176,69 +176,87 @@ def column_span(J: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- periods
 
 
-#: Shortest period of a term periodic in the pinion angle that discovery looks for, deg
-#: (a cogging torque repeats 360/LCM(slots, poles) degrees of the rotor: 15-30 for
-#: common small motors), and the longest (once per revolution).
-PERIOD_RANGE_DEG = (10.0, 360.0)
+#: The positions a term may be periodic in, and the range of periods looked for in each
+#: (its own unit), with the places a term periodic in it may act at (``None``: all).
+#: The pinion angle, deg: a cogging torque repeats 360/LCM(slots, poles) degrees of the
+#: rotor (15-30 for common small motors), a gear's tooth or eccentricity once per tooth
+#: or turn. The piston displacement, m: a linear scale's pole or grating pitch and its
+#: interpolation error (a fraction of a pitch), a ramp's or a screw's machining waviness;
+#: only where x is felt (the gap curve, the force law, the displacement sensor).
+PERIODIC: dict[str, tuple[tuple[float, float], tuple[str, ...] | None]] = {
+    "angle": ((10.0, 360.0), None),
+    "x": ((10e-6, 10e-3), ("gap", "force.input", "force.output", "sensor.x_m")),
+}
 #: Periods of the coarse scan; neighbours differ in frequency by at most half a cycle
-#: over the angle's span where that takes no more than this many.
+#: over the position's span where that takes no more than this many.
 SCAN_PERIODS = 160
 
 
-def angle_periods(ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2):
-    """The periods (deg) of a term periodic in the pinion angle that best explain the
-    residual at ``place``, estimated from the residual itself (a periodogram in the
-    angle, through the model's response at the place and orthogonal to what the stage's
-    parameters make; a harmonic times a carrier is not scanned: a current times a slow
-    harmonic took the place of a resistance that heats), not taken from a list: a coarse
-    scan over every period the trace covers (1.5 cycles or more) and resolves (4 samples
-    a cycle or more), then each of the ``most`` best peaks refined. The held-out
-    selection then judges them as any other input."""
-    s = signals.get("angle")
-    if s is None:
-        return []
-    vals = s.values if s.fine is None else s.fine.reshape(-1)
-    step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0.0
-    span = float(np.ptp(s.values))
-    lo, hi = max(PERIOD_RANGE_DEG[0], 4.0 * step), min(PERIOD_RANGE_DEG[1], span / 1.5)
-    if not lo < hi:
-        return []
+def position_periods(
+    ses, fit, place: str, signals: Mapping[str, Signal], most: int = 2
+) -> dict[str, list[float]]:
+    """The periods of a term periodic in a position (:data:`PERIODIC`: the pinion angle,
+    deg; the piston displacement, m) that best explain the residual at ``place``, per
+    position, estimated from the residual itself (a periodogram in the position, through
+    the model's response at the place and orthogonal to what the stage's parameters make;
+    a harmonic times a carrier is not scanned: a current times a slow harmonic took the
+    place of a resistance that heats), not taken from a list: a coarse scan over every
+    period the trace covers (1.5 cycles or more) and resolves (4 samples a cycle or
+    more), then each of the ``most`` best peaks refined. The held-out selection then
+    judges them as any other input (and a period in x against one in the angle: over an
+    apply the gap curve stretches one against the other)."""
+    scans = {}
+    for name, ((p_lo, p_hi), places) in PERIODIC.items():
+        s = signals.get(name)
+        if s is None or (places is not None and place not in places):
+            continue
+        vals = s.values if s.fine is None else s.fine.reshape(-1)
+        step = float(np.percentile(np.abs(np.diff(vals)), 95)) if vals.size > 1 else 0.0
+        span = float(np.ptp(s.values))
+        lo, hi = max(p_lo, 4.0 * step), min(p_hi, span / 1.5)
+        if lo < hi:
+            scans[name] = (s, lo, hi, span)
+    if not scans:
+        return {}
     r, J, _, _, G_of = linearised(ses, fit, place)
     if G_of is None:
-        return []
+        return {}
     Uj = column_span(J) if J.shape[1] else np.zeros((r.size, 0))
     r_perp = r - Uj @ (Uj.T @ r)
+    out = {}
+    for name, (s, lo, hi, span) in scans.items():
 
-    def gains(periods) -> np.ndarray:
-        out = []
-        for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
-            chunk = periods[i : i + 16]
-            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
-            G = G_of(U)
-            G = G - Uj @ (Uj.T @ G)
-            for k in range(len(chunk)):
-                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
-                Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
-                out.append(float(np.sum((Q.T @ r_perp) ** 2)))
-        return np.asarray(out)
+        def gains(periods, s=s) -> np.ndarray:
+            res = []
+            for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
+                chunk = periods[i : i + 16]
+                U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
+                G = G_of(U)
+                G = G - Uj @ (Uj.T @ G)
+                for k in range(len(chunk)):
+                    Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
+                    Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
+                    res.append(float(np.sum((Q.T @ r_perp) ** 2)))
+            return np.asarray(res)
 
-    # Frequencies (cycles per degree): spaced by half a cycle over the span, or
-    # geometrically when that would take more than SCAN_PERIODS.
-    f_lo, f_hi, df = 1.0 / hi, 1.0 / lo, 0.5 / span
-    if (f_hi - f_lo) / df + 1 <= SCAN_PERIODS:
-        freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
-    else:
-        freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
-    g = gains(1.0 / freqs)
-    # Local maxima inside the scan: one at either end is a trend (the gain still rises
-    # past the periods the trace covers or resolves), not a period.
-    inner = np.arange(1, g.size - 1)
-    peaks = inner[(g[inner] >= g[inner - 1]) & (g[inner] >= g[inner + 1])]
-    out = []
-    for k in sorted(peaks, key=lambda k: -g[k])[:most]:
-        fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
-        gf = gains(1.0 / fine)
-        out.append(float(1.0 / fine[int(np.argmax(gf))]))
+        # Frequencies (cycles per unit): spaced by half a cycle over the span, or
+        # geometrically when that would take more than SCAN_PERIODS.
+        f_lo, f_hi, df = 1.0 / hi, 1.0 / lo, 0.5 / span
+        if (f_hi - f_lo) / df + 1 <= SCAN_PERIODS:
+            freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
+        else:
+            freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
+        g = gains(1.0 / freqs)
+        # Local maxima inside the scan: one at either end is a trend (the gain still
+        # rises past the periods the trace covers or resolves), not a period.
+        inner = np.arange(1, g.size - 1)
+        peaks = inner[(g[inner] >= g[inner - 1]) & (g[inner] >= g[inner + 1])]
+        found = []
+        for k in sorted(peaks, key=lambda k: -g[k])[:most]:
+            fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
+            found.append(float(1.0 / fine[int(np.argmax(gains(1.0 / fine)))]))
+        if found:
+            out[name] = found
     return out
 
 

@@ -6,11 +6,36 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ewb_ident.diagnosis.inputs import sensor_signal
+from ewb_ident.diagnosis.inputs import Column, sensor_signal
 
-#: Known signatures: (place prefix, input, words). The first match reads the term;
-#: every reading is a hypothesis to inspect, never a catalog name.
+#: Known signatures: (place prefix, input, words); an input ``name@``: a term periodic
+#: in that position. The first match reads the term; every reading is a hypothesis to
+#: inspect, never a catalog name.
 SIGNATURES: tuple[tuple[str, str, str], ...] = (
+    (
+        "sensor.x_m",
+        "x@",
+        "the reading errs periodically with the displacement: a linear scale's "
+        "interpolation (sub-divisional) error or pitch error",
+    ),
+    (
+        "sensor.theta_deg",
+        "angle@",
+        "the reading errs periodically with the angle: an encoder's eccentricity or "
+        "interpolation error",
+    ),
+    (
+        "",
+        "x@",
+        "a term that repeats with the piston's displacement: a periodic geometry of a part "
+        "that moves with the piston (a ramp's or a track's waviness, a screw's lead error)",
+    ),
+    (
+        "",
+        "angle@",
+        "a term that repeats with the pinion angle: a periodic geometry of the gear train "
+        "(tooth meshing, an eccentric gear) or the motor's cogging",
+    ),
     (
         "motor.electrical",
         "current",
@@ -168,12 +193,26 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def reading(place: str, depends_on: Sequence[str]) -> str:
+def periodic_in(columns: Sequence[Column]) -> tuple[str, ...]:
+    """The positions basis columns are periodic in (a harmonic of a period of the
+    signal, alone or times a carrier)."""
+    forms = ((c.signal, c.form) if c.form[0] == "period" else (c.form[2], c.form[3:])
+             for c in columns if c.form[0] in ("period", "prodtrig"))  # fmt: skip
+    return tuple(dict.fromkeys(n for n, f in forms if f[0] == "period"))
+
+
+def reading(place: str, depends_on: Sequence[str], columns: Sequence[Column] = ()) -> str:
     """A physical reading of a learned term from :data:`SIGNATURES` (a hypothesis), or
-    ``""`` when no known signature matches."""
+    ``""`` when no known signature matches. ``columns``: the term's basis columns (what
+    it is periodic in)."""
     own = sensor_signal(place)
+    periodic = periodic_in(columns)
     for pre, inp, words in SIGNATURES:
         if not place.startswith(pre):
+            continue
+        if inp.endswith("@"):
+            if inp[:-1] in periodic:
+                return words
             continue
         for dep in depends_on:
             if inp == "own" and own and dep == own:
