@@ -576,6 +576,27 @@ def test_a_temperature_rise_that_cools_is_an_input_and_a_clipping_is_in_the_basi
     assert col.label.startswith("sign(i)·max(0, |i| − ")
 
 
+def test_a_signed_carriers_sign_times_another_signal_is_in_the_basis_and_reads_so():
+    """A friction whose size another signal sets opposes the motion with the size of
+    that signal: the motor speed's sign times the force (and times a harmonic of the
+    angle, a shaft that binds once per turn) is in the learned basis and the library,
+    and its equation reads ``sign(ω)·F`` in N·m per N."""
+    trace, run, _ = _clean()
+    sig = inputs.input_signals(trace, {})
+    w, F = sig["speed"], sig["force"]
+    groups = inputs.learned_groups(sig, ("speed", "force"), {"angle": [360.0]})
+    col = next(c for c in groups["speed*force"] if c.form == ("sprod", "speed", "force"))
+    np.testing.assert_allclose(col.values, np.tanh(w.values / (0.05 * w.ref)) * F.values / F.ref)
+    assert col.label == "sign(ω)·F"
+    assert inputs.physical(col, sig) == ("sign(ω)·F", 1 / F.ref, "N")
+    assert inputs.render(col, 0.5 * F.ref, sig) == "+0.5·sign(ω)·F"
+    trig = [c.label for c in groups["speed*angle@360"]]
+    assert "sign(ω)·cos(2πθ/360°)" in trig and "ω·cos(2πθ/360°)" in trig
+    assert len(groups["force*x"]) == 2  # a carrier that is not signed: F·x, F·x²
+    items = inputs.library(sig, ["speed*force"])
+    assert [c.form for (c,) in items].count(("sprod", "speed", "force")) == 1
+
+
 def test_the_filters_equal_scipy_signals():
     """The low-pass and the convolution discovery computes without importing
     scipy.signal give SciPy's numbers (signed zeros, layouts, many lengths), to rounding:

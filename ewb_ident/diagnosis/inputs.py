@@ -219,10 +219,6 @@ def _hinge_knots(z: np.ndarray, shares: Sequence[float] = KNOTS) -> list[float]:
     return [lo + q * (hi - lo) for q in shares]
 
 
-def _times(k: int) -> str:
-    return "" if k == 1 else str(k)
-
-
 def interval_mean(f: np.ndarray) -> np.ndarray:
     """The mean over each sample interval of values within it, shape (n, m + 1) ->
     (n,) (trapezoid rule)."""
@@ -267,17 +263,25 @@ def carriers_of(place: str) -> tuple[str, ...]:
 
 
 TRIG = {"sin": np.sin, "cos": np.cos}
-#: A product's function of its second input (its first, the carrier, is normalised).
+#: A product's function of its second input (its first, the carrier, is normalised, or
+#: for an ``s`` kind its sign: a friction, or a drop, whose size another signal sets).
 PRODUCT = {"prod": ("pow", 1), "prod2": ("pow", 2), "prodabs": ("abs",)}
+PRODUCT |= {f"s{k}": v for k, v in PRODUCT.items()}
+SIGN = ("tanh", 0.05)
 
 
 def product_of(form: tuple) -> tuple | None:
     """The form of the function of its second input a product column has (a carrier
-    times a power, or ``prodtrig``: times a harmonic of a phase or an angle period), or
-    ``None`` for a column that is not a product."""
+    times a power, or ``prodtrig``: times a harmonic of a phase or a position's period),
+    or ``None`` for a column that is not a product."""
     if form[0] in PRODUCT:
         return PRODUCT[form[0]]
-    return tuple(form[3:]) if form[0] == "prodtrig" else None
+    return tuple(form[3:]) if form[0] in ("prodtrig", "sprodtrig") else None
+
+
+def carrier_form(form: tuple) -> tuple:
+    """The function of its carrier a product column has: the carrier or its sign."""
+    return SIGN if form[0].startswith("sprod") else ("pow", 1)
 
 
 def form_fn(form: tuple, r: float):
@@ -322,8 +326,8 @@ def form_values(
         ``(kind, *args)``: ``pow``, ``spow``, ``abs``, ``tanh``, ``sqrt``, ``sat``,
         ``hinge``, ``nhinge`` (the hinge of the negated signal), ``ohinge`` (the odd
         hinge of the magnitude), ``harm``, ``period`` of ``signal``; ``prod``, ``prod2``,
-        ``prodabs``, ``prodtrig`` of the carrier ``form[1]`` times a function of
-        ``form[2]`` (:func:`product_of`); ``one``.
+        ``prodabs``, ``prodtrig`` of the carrier ``form[1]`` (``sprod...``: its sign)
+        times a function of ``form[2]`` (:func:`product_of`); ``one``.
     signal
         The input it depends on (a product's: ``"carrier*other"``).
     signals
@@ -343,10 +347,10 @@ def form_values(
     second = product_of(form)
     if second is not None:
         c, s = signals[form[1]], signals[form[2]]
-        fn, rc = form_fn(second, ref(form[2])), ref(form[1])
+        fn, fc = form_fn(second, ref(form[2])), form_fn(carrier_form(form), ref(form[1]))
         if c.fine is not None and s.fine is not None:
-            return interval_mean(c.fine / rc * fn(s.fine))
-        return ev(c, lambda v: v / rc) * ev(s, fn)
+            return interval_mean(fc(c.fine) * fn(s.fine))
+        return ev(c, fc) * ev(s, fn)
     return ev(signals[signal], form_fn(form, ref(signal)))
 
 
@@ -360,43 +364,36 @@ def _col(label: str, signal: str, form: tuple, signals: Mapping[str, Signal]) ->
 
 
 def _products(c: Signal, s: Signal, signals: Mapping[str, Signal]) -> list[Column]:
-    """The carrier ``c`` times ``s``, ``s²`` (and ``|s|`` for a signed ``s``)."""
-    g = f"{c.name}*{s.name}"
-    cols = [
-        _col(f"{c.symbol}·{s.symbol}", g, ("prod", c.name, s.name), signals),
-        _col(f"{c.symbol}·{s.symbol}²", g, ("prod2", c.name, s.name), signals),
-    ]
-    if s.kind == "signed":
-        cols.append(_col(f"{c.symbol}·|{s.symbol}|", g, ("prodabs", c.name, s.name), signals))
-    return cols
+    """The carrier ``c`` times ``s``, ``s²`` (and ``|s|`` for a signed ``s``), and for a
+    signed carrier its sign times each (a friction whose size another signal sets)."""
+    kinds = ["prod", "prod2"] + (["prodabs"] if s.kind == "signed" else [])
+    kinds += [f"s{k}" for k in kinds] if c.kind == "signed" else []
+    cols = [_col("", f"{c.name}*{s.name}", (k, c.name, s.name), signals) for k in kinds]
+    return [replace(col, label=physical(col, signals)[0]) for col in cols]
 
 
 def trig_products(c: Signal, s: Signal, arg: tuple, signals) -> list[Column]:
-    """The carrier ``c`` times a sine and cosine of the phase or angle ``s`` (``arg``:
-    ``("harm", k)`` or ``("period", P)``): a coefficient that varies around a turn."""
-    out = []
-    for col in (
-        periodic(s, arg[1], signals) if arg[0] == "period" else _harmonic(s, arg[1], signals)
-    ):
-        form = ("prodtrig", c.name, s.name, *col.form)
-        out.append(_col(f"{c.symbol}·{col.label}", f"{c.name}*{s.name}", form, signals))
-    return out
+    """The carrier ``c`` (and a signed one's sign) times a sine and cosine of the phase
+    or position ``s`` (``arg``: ``("harm", k)`` or ``("period", P)``): a coefficient that
+    varies around a turn (a friction that binds at some angles)."""
+    trig = periodic(s, arg[1], signals) if arg[0] == "period" else _harmonic(s, arg[1], signals)
+    heads = {"prodtrig": c.symbol, "sprodtrig": f"sign({c.symbol})"}
+    g = f"{c.name}*{s.name}"
+    return [_col(f"{heads[k]}·{col.label}", g, (k, c.name, s.name, *col.form), signals)
+            for k in list(heads)[: 1 + (c.kind == "signed")] for col in trig]  # fmt: skip
 
 
 def periodic(s: Signal, period: float, signals) -> list[Column]:
     """A sine and cosine of the position ``s`` with ``period`` (in its unit; a
     displacement's shown in mm)."""
-    shown = f"{period:.4g}°" if s.unit == "deg" else f"{period * 1e3:.4g} mm"
-    if s.unit not in ("deg", "m"):
-        shown = f"{period:.4g} {s.unit}"
-    return [
-        _col(f"{f}(2π{s.symbol}/{shown})", s.name, ("period", period, f), signals) for f in TRIG
-    ]
+    arg = f"2π{s.symbol}/" + {"deg": f"{period:.4g}°", "m": f"{period * 1e3:.4g} mm"}[s.unit]
+    return [_col(f"{f}({arg})", s.name, ("period", period, f), signals) for f in TRIG]
 
 
 def _harmonic(s: Signal, k: int, signals) -> list[Column]:
     """A sine and cosine of ``k`` times the phase ``s``."""
-    return [_col(f"{f}({_times(k)}{s.symbol})", s.name, ("harm", k, f), signals) for f in TRIG]
+    k_ = "" if k == 1 else str(k)
+    return [_col(f"{f}({k_}{s.symbol})", s.name, ("harm", k, f), signals) for f in TRIG]
 
 
 def _signed(s: Signal, signals) -> list[Column]:
@@ -549,13 +546,15 @@ def physical(col: Column, signals: Mapping[str, Signal]) -> tuple[str, float, st
     kind = col.form[0]
     if kind == "one":
         return "1", 1.0, ""
-    if kind in PRODUCT:  # the carrier times the one-input form of the other signal
+    if kind in PRODUCT:  # the carrier (or its sign) times the other's one-input form
         a = signals[col.form[1]]
         expr, factor, unit = physical(Column("", col.form[2], None, PRODUCT[kind]), signals)
+        if carrier_form(col.form) == SIGN:
+            return f"sign({a.symbol})·{expr}", factor, unit
         return f"{a.symbol}·{expr}", factor / a.ref, f"{a.unit}*{unit}"
-    if kind == "prodtrig":
+    if kind in ("prodtrig", "sprodtrig"):
         a = signals[col.form[1]]
-        return col.label, 1.0 / a.ref, a.unit
+        return (col.label, 1.0 / a.ref, a.unit) if kind == "prodtrig" else (col.label, 1.0, "")
     s = signals[col.signal]
     if kind == "pow":
         p = col.form[1]

@@ -197,7 +197,7 @@ def periodic_in(columns: Sequence[Column]) -> tuple[str, ...]:
     """The positions basis columns are periodic in (a harmonic of a period of the
     signal, alone or times a carrier)."""
     forms = ((c.signal, c.form) if c.form[0] == "period" else (c.form[2], c.form[3:])
-             for c in columns if c.form[0] in ("period", "prodtrig"))  # fmt: skip
+             for c in columns if c.form[0] in ("period", "prodtrig", "sprodtrig"))  # fmt: skip
     return tuple(dict.fromkeys(n for n, f in forms if f[0] == "period"))
 
 
