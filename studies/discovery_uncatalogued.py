@@ -49,6 +49,7 @@ second blind probe after the first's report.
 ``--rig probe3`` from ``validation_rigs/probe3_rig.py``: six more again, a third blind probe.
 ``--rig probe4`` from ``validation_rigs/probe4_rig.py``: six more again, a fourth blind probe.
 ``--rig probe5`` from ``validation_rigs/probe5_rig.py``: six more again, a fifth blind probe.
+``--rig probe6`` from ``validation_rigs/probe6_rig.py``: six more again, a sixth blind probe.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ from typing import Any
 import numpy as np
 
 from studies.diagnosis_accuracy import _read
-from validation_rigs import probe2_rig, probe3_rig, probe4_rig, probe5_rig, probe_rig
+from validation_rigs import probe2_rig, probe3_rig, probe4_rig, probe5_rig, probe6_rig, probe_rig
 from validation_rigs import uncatalogued_rig as ur
 
 #: The independent rigs the cases come from (``--rig``): the fourteen families of the
@@ -77,6 +78,7 @@ RIGS = {
     "probe3": probe3_rig,
     "probe4": probe4_rig,
     "probe5": probe5_rig,
+    "probe6": probe6_rig,
 }
 
 HERE = Path(__file__).resolve().parent
