@@ -578,6 +578,21 @@ def test_a_headline_parameter_the_chain_and_its_stage_disagree_on_is_that_uncert
     assert "chain's a, b differ" in note
 
 
+def test_corrected_parameters_the_trace_does_not_pin_down_are_named():
+    """A corrected a, b, c or mu whose standard error is beyond 30 % of its value is
+    named as unresolved (with its value and error); resolved ones and the other
+    parameters are not."""
+    from ewb_ident.diagnosis.corrected import unresolved_notes
+
+    params = {"a": 6.3e-4, "b": 2.9, "c": 9.6e-4, "mu": 0.35, "R": 1.0}
+    resolved = {"a": 1e-5, "b": 0.05, "c": 5e-6, "mu": 1e-3, "R": 5.0}
+    assert unresolved_notes(params, resolved) == []
+    (note,) = unresolved_notes(params, resolved | {"a": 4e-4, "b": 1.2, "mu": None})
+    assert "the corrected a, b are not pinned down" in note
+    assert "a = 0.00063 ± 0.0004" in note and "b = 2.9 ± 1.2" in note
+    assert "c =" not in note and "R" not in note
+
+
 def test_a_finding_whose_fits_did_not_converge_says_so(monkeypatch):
     """Every solver status is checked: with the candidate fits cut to two steps, the
     backlash's candidate still improves its stage, and its evidence and words say its

@@ -26,6 +26,7 @@ from ewb_ident.diagnosis.session import (
 from ewb_ident.inference.augmented import fit_mechanisms
 from ewb_ident.inference.fit_result import FitResult
 from ewb_ident.inference.log_posterior import CONTRACT_PARAMS
+from ewb_ident.inference.uncertainty import POORLY_DETERMINED
 from ewb_ident.mechanisms import AbstractMechanism, variants
 from ewb_ident.mechanisms.learned import LearnedTerm, term_at, with_bases
 from ewb_ident.model.numerics import numerics
@@ -161,6 +162,24 @@ def spread_notes(spread, stderr) -> list[str]:
         "(other forms or places fit held-out data about as well): "
         + ("its standard error includes" if one else "their standard errors include")
         + f" that spread ({', '.join(big)}, SI)"
+    ]
+
+
+def unresolved_notes(params: Mapping[str, float], stderr) -> list[str]:
+    """A note naming the corrected chain's headline parameters (a, b, c, mu) that the
+    trace does not pin down: a standard error beyond :data:`POORLY_DETERMINED` of the
+    value (as the seed fit's identifiability notes judge its own)."""
+    bad = [k for k in CONTRACT_PARAMS if k in params and (s := stderr.get(k)) is not None
+           and not s <= POORLY_DETERMINED * abs(params[k])]  # fmt: skip
+    if not bad:
+        return []
+    one = len(bad) == 1
+    return [
+        f"the corrected {', '.join(bad)} {'is' if one else 'are'} not pinned down by this "
+        f"trace (standard error beyond {POORLY_DETERMINED:.0%} of the value: "
+        + ", ".join(f"{k} = {params[k]:.4g} ± {stderr[k]:.3g}" for k in bad)
+        + f"); treat {'it' if one else 'them'} as unresolved, or record a trace that "
+        "moves the piston past the bell's centre"
     ]
 
 

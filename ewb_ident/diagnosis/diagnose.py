@@ -79,6 +79,7 @@ from ewb_ident.diagnosis.corrected import (
     spread_notes,
     stage_spread,
     stage_spread_note,
+    unresolved_notes,
     with_spread,
 )
 from ewb_ident.diagnosis.discovery import Discovery, discover
@@ -255,10 +256,10 @@ def _diagnose(trace, bic_threshold, max_mechanisms, catalog, progress) -> Diagno
         spread = _form_spread(work, added)
         tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], spread)
         notes += spread_notes(spread, tables["augmented_stderr"])
-        if added:
+        if added:  # and the corrected a, b, c, mu the trace does not pin down
             apart = stage_spread(work, tables["augmented_params"])
-            tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], apart)
-            notes += stage_spread_note(apart, tables["augmented_stderr"])
+            st = tables["augmented_stderr"] = with_spread(tables["augmented_stderr"], apart)
+            notes += stage_spread_note(apart, st) + unresolved_notes(tables["augmented_params"], st)
     timings["total"] = time.perf_counter() - t_start
     return DiagnosisResult(
         trace_name=trace.name,
@@ -488,8 +489,7 @@ class _RefineAhead:
 
 
 def _sub_stepped(tmpl: AbstractMechanism) -> bool:
-    """Whether the mechanism acts inside the motor's integration (its fits are the
-    slowest: the motor in sub-steps)."""
+    """Whether the mechanism acts inside the motor's integration (the slowest fits)."""
     return any(tmpl.uses(h) for h in MOTOR_HOOKS)
 
 
