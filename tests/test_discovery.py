@@ -680,7 +680,11 @@ def test_a_catalog_name_beside_a_learned_term_must_also_win_on_heldout_data(tmp_
     alone, in the motor's voltage, on the current the sag depends on. (Since the learned
     terms' evidence is counted with the held-out folds' cap on the lag-1 correlation, a
     term alone that the pair no longer beats in BIC drops the name first; the held-out
-    branch is tested on its own in ``test_diagnose.py``.)"""
+    branch is tested on its own in ``test_diagnose.py``. Since a signed carrier's sign
+    multiplies other inputs, the distilled term is ``sign(i)`` times the angle travelled
+    since a reversal, held-out share 0.94 against 0.89 for a function of the current
+    alone: without a current sensor the model's current lacks the sag, and a proxy can
+    predict better. The current is still its first input.)"""
     from ewb_ident.data.readers import read_trace
     from validation_rigs import uncatalogued_rig as ur
 
@@ -688,10 +692,12 @@ def test_a_catalog_name_beside_a_learned_term_must_also_win_on_heldout_data(tmp_
     res = diagnose(read_trace(ur.write_case(case, tmp_path, "sag")))
     assert not any(f.catalog for f in res.findings)
     (top,) = [f for f in res.findings if f.place]
-    assert top.place == "motor.electrical" and top.depends_on == ("current",)
+    assert top.place == "motor.electrical" and top.depends_on[0] == "current"
     assert top.heldout["excess_share"] >= 0.5
     why = "current_limit: not reported: a learned term at motor.electrical alone "
     assert any(n.startswith(why) for n in res.notes)
+    # The sag leaves a, b, c unresolved (a ± 0.14 m): the diagnosis says so.
+    assert any(n.startswith("the corrected a, b, c are not pinned down") for n in res.notes)
 
 
 @pytest.mark.slow
