@@ -36,7 +36,7 @@ OVER = {
     "ewb_ident.rig.simulate": 664,
     "ewb_ident.data.readers": 643,
     "ewb_ident.data.validation": 633,
-    "ewb_ident.diagnosis.inputs": 602,
+    "ewb_ident.diagnosis.inputs": 601,
 }
 
 
