@@ -223,22 +223,23 @@ def position_periods(
         return {}
     Uj = column_span(J) if J.shape[1] else np.zeros((r.size, 0))
     r_perp = r - Uj @ (Uj.T @ r)
+
+    def gains(s: Signal, periods) -> np.ndarray:
+        """The residual each period's sine and cosine of ``s`` would remove."""
+        res = []
+        for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
+            chunk = periods[i : i + 16]
+            U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
+            G = G_of(U)
+            G = G - Uj @ (Uj.T @ G)
+            for k in range(len(chunk)):
+                Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
+                Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
+                res.append(float(np.sum((Q.T @ r_perp) ** 2)))
+        return np.asarray(res)
+
     out = {}
     for name, (s, lo, hi, span) in scans.items():
-
-        def gains(periods, s=s) -> np.ndarray:
-            res = []
-            for i in range(0, len(periods), 16):  # in chunks: memory bounded on long traces
-                chunk = periods[i : i + 16]
-                U = np.stack([c.values for P in chunk for c in periodic(s, P, signals)], axis=1)
-                G = G_of(U)
-                G = G - Uj @ (Uj.T @ G)
-                for k in range(len(chunk)):
-                    Q, R = np.linalg.qr(G[:, 2 * k : 2 * k + 2])
-                    Q = Q[:, np.abs(np.diag(R)) > 1e-12 * max(float(np.abs(R).max()), 1e-300)]
-                    res.append(float(np.sum((Q.T @ r_perp) ** 2)))
-            return np.asarray(res)
-
         # Frequencies (cycles per unit): spaced by half a cycle over the span, or
         # geometrically when that would take more than SCAN_PERIODS.
         f_lo, f_hi, df = 1.0 / hi, 1.0 / lo, 0.5 / span
@@ -246,7 +247,7 @@ def position_periods(
             freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
         else:
             freqs = np.geomspace(f_lo, f_hi, SCAN_PERIODS)
-        g = gains(1.0 / freqs)
+        g = gains(s, 1.0 / freqs)
         # Local maxima inside the scan: one at either end is a trend (the gain still
         # rises past the periods the trace covers or resolves), not a period.
         inner = np.arange(1, g.size - 1)
@@ -254,7 +255,7 @@ def position_periods(
         found = []
         for k in sorted(peaks, key=lambda k: -g[k])[:most]:
             fine = np.linspace(freqs[max(k - 1, 0)], freqs[min(k + 1, freqs.size - 1)], 9)
-            found.append(float(1.0 / fine[int(np.argmax(gains(1.0 / fine)))]))
+            found.append(float(1.0 / fine[int(np.argmax(gains(s, 1.0 / fine)))]))
         if found:
             out[name] = found
     return out

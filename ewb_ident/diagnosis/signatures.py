@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ewb_ident.diagnosis.inputs import Column, sensor_signal
+from ewb_ident.diagnosis.inputs import Column, product_of, sensor_signal
 
 #: Known signatures: (place prefix, input, words); an input ``name@``: a term periodic
 #: in that position. The first match reads the term; every reading is a hypothesis to
@@ -195,9 +195,9 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
 
 def periodic_in(columns: Sequence[Column]) -> tuple[str, ...]:
     """The positions basis columns are periodic in (a harmonic of a period of the
-    signal, alone or times a carrier)."""
-    forms = ((c.signal, c.form) if c.form[0] == "period" else (c.form[2], c.form[3:])
-             for c in columns if c.form[0] in ("period", "prodtrig", "sprodtrig"))  # fmt: skip
+    signal, alone or times a carrier: :func:`product_of`'s second form)."""
+    forms = ((c.signal, c.form) if (second := product_of(c.form)) is None
+             else (c.form[2], second) for c in columns)  # fmt: skip
     return tuple(dict.fromkeys(n for n, f in forms if f[0] == "period"))
 
 
