@@ -264,14 +264,12 @@ def white_level(check: StageCheck, idx: np.ndarray | None = None) -> float:
     floor; its residual holds at least the rounding error ``q / sqrt(12)`` of its step
     ``q`` (:func:`ewb_ident.data.metrics.quantisation_step`). (Found on a clean 1 kHz trace
     of the third rig with a quantised angle, reported ``unexplained`` at the motor stage
-    with 2.2x the halved floor.)
+    with 2.2x the halved floor.) The residual is near a grid of that step over the floor,
+    so its scale is taken as on a grid (:func:`ewb_ident.data.metrics.noise_sigma`).
     """
     r = check.normalized if idx is None else check.normalized[idx]
-    level = noise_sigma(r)
-    if check.rounding > 0:
-        s = check.sigma if idx is None else check.sigma[idx]
-        level = max(level, check.rounding / float(np.median(s)))
-    return level
+    s = check.sigma if idx is None else check.sigma[idx]
+    return noise_sigma(r, step=np.sqrt(12.0) * check.rounding / float(np.median(s)))
 
 
 #: Fewest samples of a phase whose own white-noise level may raise its floor (the robust
