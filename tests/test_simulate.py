@@ -195,7 +195,7 @@ def test_noise_about_one_step_of_a_grid_is_estimated_to_a_few_per_cent(ratio):
     from ewb_ident.data.metrics import noise_sigma
 
     rng = np.random.default_rng(int(10 * ratio))
-    q = 7.32421875e-07  # 12 bits over 3 mm
+    q = 3e-3 / 4096  # 12 bits over 3 mm, m
     t = np.linspace(0.0, 3.0, 3000)
     x = 4e-4 * np.sin(2.0 * np.pi * 0.7 * t) + 2e-4 * t
     noisy = x + rng.normal(0.0, ratio * q, t.size)

@@ -168,18 +168,25 @@ def spread_notes(spread, stderr) -> list[str]:
 def unresolved_notes(params: Mapping[str, float], stderr) -> list[str]:
     """A note naming the corrected chain's headline parameters (a, b, c, mu) that the
     trace does not pin down: a standard error beyond :data:`POORLY_DETERMINED` of the
-    value (as the seed fit's identifiability notes judge its own)."""
+    value (as the seed fit's identifiability notes judge its own), with the recording
+    that would pin each down: a, b, c the bell's shape, mu the torque under clamp."""
     bad = [k for k in CONTRACT_PARAMS if k in params and (s := stderr.get(k)) is not None
            and not s <= POORLY_DETERMINED * abs(params[k])]  # fmt: skip
     if not bad:
         return []
     one = len(bad) == 1
+    bell = [k for k in bad if k != "mu"]
+    record = []
+    if bell:
+        record.append(f"for {', '.join(bell)}: one that moves the piston past the bell's centre")
+    if "mu" in bad:
+        record.append("for mu: one with the brake torque recorded while the pads clamp")
     return [
         f"the corrected {', '.join(bad)} {'is' if one else 'are'} not pinned down by this "
         f"trace (standard error beyond {POORLY_DETERMINED:.0%} of the value: "
         + ", ".join(f"{k} = {params[k]:.4g} ± {stderr[k]:.3g}" for k in bad)
-        + f"); treat {'it' if one else 'them'} as unresolved, or record a trace that "
-        "moves the piston past the bell's centre"
+        + f"); treat {'it' if one else 'them'} as unresolved, or record a trace "
+        + " and, ".join(record)
     ]
 
 
