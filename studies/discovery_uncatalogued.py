@@ -50,6 +50,7 @@ second blind probe after the first's report.
 ``--rig probe4`` from ``validation_rigs/probe4_rig.py``: six more again, a fourth blind probe.
 ``--rig probe5`` from ``validation_rigs/probe5_rig.py``: six more again, a fifth blind probe.
 ``--rig probe6`` from ``validation_rigs/probe6_rig.py``: six more again, a sixth blind probe.
+``--rig probe7`` from ``validation_rigs/probe7_rig.py``: six more again, a seventh blind probe.
 """
 
 from __future__ import annotations
@@ -65,7 +66,15 @@ from typing import Any
 import numpy as np
 
 from studies.diagnosis_accuracy import _read
-from validation_rigs import probe2_rig, probe3_rig, probe4_rig, probe5_rig, probe6_rig, probe_rig
+from validation_rigs import (
+    probe2_rig,
+    probe3_rig,
+    probe4_rig,
+    probe5_rig,
+    probe6_rig,
+    probe7_rig,
+    probe_rig,
+)
 from validation_rigs import uncatalogued_rig as ur
 
 #: The independent rigs the cases come from (``--rig``): the fourteen families of the
@@ -79,6 +88,7 @@ RIGS = {
     "probe4": probe4_rig,
     "probe5": probe5_rig,
     "probe6": probe6_rig,
+    "probe7": probe7_rig,
 }
 
 HERE = Path(__file__).resolve().parent

@@ -132,7 +132,16 @@ def test_a_reading_held_on_its_grid_may_be_off_by_half_a_step():
 
 
 @pytest.mark.parametrize(
-    "rig_name", ["probe_rig", "probe2_rig", "probe3_rig", "probe4_rig", "probe5_rig", "probe6_rig"]
+    "rig_name",
+    [
+        "probe_rig",
+        "probe2_rig",
+        "probe3_rig",
+        "probe4_rig",
+        "probe5_rig",
+        "probe6_rig",
+        "probe7_rig",
+    ],
 )
 def test_probe_rigs_draw_visible_concealed_reproducible_cases(rig_name):
     """Each family and form of a blind-probe rig is drawn visible (>= 3x the noise on
