@@ -595,6 +595,12 @@ def test_a_signed_carriers_sign_times_another_signal_is_in_the_basis_and_reads_s
     assert len(groups["force*x"]) == 2  # a carrier that is not signed: F·x, F·x²
     items = inputs.library(sig, ["speed*force"])
     assert [c.form for (c,) in items].count(("sprod", "speed", "force")) == 1
+    # a term the refit through the model set to nothing is left out of the equation
+    force = next(c for c in groups["force"] if c.label == "F")
+    eq = disc_mod.equation_of("motor.mechanical", [[col], [force]], [0.5 * F.ref, 1e-15], sig)
+    assert "sign(ω)·F" in eq and "·F [" not in eq.replace("sign(ω)·F", "")
+    both = disc_mod.equation_of("motor.mechanical", [[col], [force]], [0.5, 0.5], sig)
+    assert both.count("·F") == 2
 
 
 def test_the_filters_equal_scipy_signals():
