@@ -111,7 +111,7 @@ HELD = {"sensor_lowpass", ("supply_sag", "a"), "thrust_bearing_friction"}
 #: Signals of the tool's findings taken as the planted term's (truth vocabulary).
 SAME: dict[str, set[str]] = {
     "current": {"current", "direction", "current_travel"},
-    "speed": {"speed", "direction"},
+    "speed": {"speed", "direction", "speed_history"},
     "angle": {"angle"},
     "x": {"x"},
     "x_rate": {"x_rate"},

@@ -802,6 +802,25 @@ def test_a_drag_is_learned_on_the_speed_not_on_the_logged_voltage(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_drag_that_builds_over_a_stroke_and_outlasts_it_is_learned_on_the_speeds_history(
+    tmp_path,
+):
+    """A viscoelastic gear grease (an independent rig's, 500 Hz, closed loop): its drag
+    follows the motor speed through a relaxation, so the term is learned on the speed
+    low-passed over a time constant, at the motor, with no catalog name."""
+    from ewb_ident.data.readers import read_trace
+    from validation_rigs import probe7_rig
+    from validation_rigs import uncatalogued_rig as ur
+
+    case = probe7_rig.make_case("grease_viscoelastic_drag", "a", 20261397, 14)
+    res = diagnose(read_trace(ur.write_case(case, tmp_path, "grease")))
+    assert not any(f.catalog for f in res.findings)
+    (top,) = [f for f in res.findings if f.place]
+    assert top.place.startswith("motor.") and top.depends_on[0].startswith("speed_history_")
+    assert top.heldout["excess_share"] >= 0.8
+
+
+@pytest.mark.slow
 def test_an_lvdt_nonlinearity_is_learned_on_the_displacement_it_reads(tmp_path):
     """A displacement sensor whose reading bends with the displacement, on an
     independent rig (200 Hz, voltage steps): the term at the sensor fitted held-out data

@@ -135,6 +135,9 @@ def input_signals(
         omega = np.gradient(th, dt) / DEG_PER_RAD
         add("angle", channel("theta_deg", True), "deg", "angle", "the pinion angle", "θ")
         add("speed", omega, "rad/s", "signed", "the motor speed", "ω")
+        for tau in HISTORY_S:  # a drag that builds over a stroke and outlasts it
+            hist, lp = f"the motor speed low-passed over {tau:g} s", _lowpass(omega, dt, tau)
+            add(f"speed_history_{tau:g}s", lp, "rad/s", "signed", hist, f"ω̄{tau:g}s")
         # What steps at each reversal (a slip, a loss per stroke); what restarts (hysteresis).
         count, travel = reversals(th, REVERSAL_SHARE)
         add("reversals", count, "1", "level", "the reversals of the motion so far", "n_rev")
@@ -181,9 +184,8 @@ def input_signals(
         wd = trace["disc_speed_rad_s"]
         if np.ptp(wd) > 0.02 * max(float(np.max(np.abs(wd))), 1e-9):
             add("disc_speed", wd, "rad/s", "level", "the disc speed", "ω_d")
-        add(
-            "distance", _integral(np.abs(wd), dt), "rad", "level", "the disc's sliding angle", "s_d"
-        )
+        slid = _integral(np.abs(wd), dt)
+        add("distance", slid, "rad", "level", "the disc's sliding angle", "s_d")
         phi = np.mod(disc_angle(trace), 2 * np.pi)
         add("disc_angle", phi, "rad", "phase", "the disc angle", "φ_d")
         if "torque" in out:
@@ -220,8 +222,7 @@ def _hinge_knots(z: np.ndarray, shares: Sequence[float] = KNOTS) -> list[float]:
 
 
 def interval_mean(f: np.ndarray) -> np.ndarray:
-    """The mean over each sample interval of values within it, shape (n, m + 1) ->
-    (n,) (trapezoid rule)."""
+    """The mean over each sample interval of values within it, (n, m + 1) -> (n,)."""
     return (0.5 * (f[:, 0] + f[:, -1]) + f[:, 1:-1].sum(axis=1)) / (f.shape[1] - 1)
 
 
@@ -384,8 +385,7 @@ def trig_products(c: Signal, s: Signal, arg: tuple, signals) -> list[Column]:
 
 
 def periodic(s: Signal, period: float, signals) -> list[Column]:
-    """A sine and cosine of the position ``s`` with ``period`` (in its unit; a
-    displacement's shown in mm)."""
+    """A sine and cosine of the position ``s`` with ``period`` (in its unit, mm for x)."""
     arg = f"2π{s.symbol}/" + {"deg": f"{period:.4g}°", "m": f"{period * 1e3:.4g} mm"}[s.unit]
     return [_col(f"{f}({arg})", s.name, ("period", period, f), signals) for f in TRIG]
 

@@ -74,6 +74,12 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
     ),
     (
         "motor.mechanical",
+        "speed_history",
+        "a drag that builds over the motion and outlasts it: a viscoelastic "
+        "lubricant or a fluid coupling",
+    ),
+    (
+        "motor.mechanical",
         "speed",
         "a drag torque depending on speed beyond the viscous term: "
         "windage, lubricant churning or Coulomb friction",
@@ -223,7 +229,7 @@ def reading(place: str, depends_on: Sequence[str], columns: Sequence[Column] = (
                 dep == inp
                 or dep.startswith(inp + "_history")
                 or dep.startswith(inp)
-                and (inp in ("force_history",))
+                and inp.endswith("_history")
             ):
                 return words
     return ""
