@@ -26,8 +26,8 @@ noise about one step, the MAD of the second differences is one step for any nois
 displacement at 1 kHz read 0.6 steps for 0.76, and its residual was taken for missing
 physics). On a grid the scale is therefore the standard deviation of the second
 differences within :data:`TRIM` robust scales of their median (the scale at least one
-step), which is within a few per cent of ``sqrt(sigma^2 + q^2 / 12)`` from a noise of
-0.2 steps upwards.
+step), which is within 6 % of ``sqrt(sigma^2 + q^2 / 12)`` from a noise of 0.3 steps
+upwards.
 """
 
 from __future__ import annotations
