@@ -59,6 +59,12 @@ SIGNATURES: tuple[tuple[str, str, str], ...] = (
         "voltage_rate",
         "the motor sees the logged voltage late or smoothed: a lag in the driver",
     ),
+    (
+        "motor.electrical",
+        "speed_history",
+        "a voltage that follows the speed late: a drag that builds over the motion and "
+        "outlasts it, seen in the current it draws (a viscoelastic lubricant)",
+    ),
     ("motor.electrical", "speed", "a back-EMF that is not proportional to speed"),
     (
         "motor.mechanical",
