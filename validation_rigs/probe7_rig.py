@@ -140,7 +140,7 @@ from typing import Any
 import numpy as np
 
 from validation_rigs.probe_rig import make_probe_case, run_cli
-from validation_rigs.uncatalogued_rig import H_MAX, Case, chain, gap_m, theta_for_force
+from validation_rigs.uncatalogued_rig import H_MAX, Case, bell, chain, gap_m, theta_for_force
 
 FAMILIES: dict[str, dict] = {
     "driver_standby_wake": {
@@ -383,12 +383,6 @@ def effect_params(family: str, form: str, s: float, ex: dict, p: dict) -> dict:
     return prm
 
 
-def _bell1(x: float, p: dict) -> float:
-    """Scalar ``bell`` [N] of the uncatalogued rig."""
-    u = abs((x - p["c"]) / p["a"])
-    return p["F_rt"] / (1.0 + u ** (2.0 * p["b"]))
-
-
 def _slip(th: np.ndarray, p: dict, prm: dict, form: str) -> tuple[np.ndarray, ...]:
     """Slip ``phi`` [deg] and force [N] of ``drive_slip_clutch``: the clutch slips while
     the motor drives the piston past the force it transmits (``F_s``, or ``F_k`` once
@@ -407,13 +401,13 @@ def _slip(th: np.ndarray, p: dict, prm: dict, form: str) -> tuple[np.ndarray, ..
             sliding = False  # sticks again where it is
         if sliding:
             phi = max(phi, t_k - th_k)
-        elif advancing and _bell1(float(gap_m(t_k - phi, p)), p) > f_s:
+        elif advancing and float(bell(gap_m(t_k - phi, p), p)) > f_s:
             if form == "a":
                 phi = t_k - th_s
             else:
                 phi, sliding = t_k - th_k, True
         out_phi[k] = phi
-        out_f[k] = _bell1(float(gap_m(t_k - phi, p)), p)
+        out_f[k] = float(bell(gap_m(t_k - phi, p), p))
     return out_phi, out_f
 
 
@@ -429,7 +423,7 @@ def _squeeze(x: np.ndarray, p: dict, prm: dict, f_y: float, dt: float) -> tuple[
     fo, do = np.empty(n), np.empty(n)
     for k in range(n):
         d = h0 - 1.0 / math.sqrt(inv2)
-        fk = _bell1(float(x[k]) - d, p)
+        fk = float(bell(float(x[k]) - d, p))
         fo[k], do[k] = fk, d
         inv2 += kk * max(fk - f_y, 0.0) * dt
     return fo, do
