@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from ewb_ident.data.metrics import noise_sigma, rounding_error, smooth
+from ewb_ident.data.metrics import noise_sigma, quantisation_step, rounding_error, smooth
 from ewb_ident.data.stages import STAGE_WORDS
 from ewb_ident.data.trace import Trace
 
@@ -145,9 +145,10 @@ class StageCheck:
         return self.residual / self.sigma
 
     @functools.cached_property
-    def rounding(self) -> float:
-        """The measured channel's rounding error (0 when not on a grid), its unit."""
-        return rounding_error(self.measured)
+    def step(self) -> float:
+        """The measured channel's grid step (0 when not on a grid), its unit: its
+        rounding error is ``step / sqrt(12)``."""
+        return quantisation_step(self.measured)
 
 
 @dataclass(frozen=True)
@@ -269,7 +270,7 @@ def white_level(check: StageCheck, idx: np.ndarray | None = None) -> float:
     """
     r = check.normalized if idx is None else check.normalized[idx]
     s = check.sigma if idx is None else check.sigma[idx]
-    return noise_sigma(r, step=np.sqrt(12.0) * check.rounding / float(np.median(s)))
+    return noise_sigma(r, step=check.step / float(np.median(s)))
 
 
 #: Fewest samples of a phase whose own white-noise level may raise its floor (the robust
@@ -295,14 +296,14 @@ def phase_floor_scale(check: StageCheck, idx: np.ndarray) -> float:
     if idx.size < PHASE_SCALE_MIN_SAMPLES:
         return 0.0
     level = white_level(check, idx)
-    if check.rounded and check.rounding > 0:
+    if check.rounded and check.step > 0:
         # Where a channel on a coarse grid holds one value, its rounding error is one offset of
         # up to half a step for the whole hold, not white noise of q/sqrt(12) (the holds
         # of a clean 12-bit angle in saturation scored 1.37x).
         m = check.measured
         same = np.diff(m) == 0
         held = np.r_[False, same] | np.r_[same, False]
-        bound = np.where(held[idx], 0.5 * np.sqrt(12.0) * check.rounding, check.rounding)
+        bound = np.where(held[idx], 0.5 * check.step, check.step / np.sqrt(12.0))
         level = max(level, float(np.sqrt(np.mean(bound**2)) / np.median(check.sigma[idx])))
     return float(np.clip(level, *FLOOR_SCALE))
 
