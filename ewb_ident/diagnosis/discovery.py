@@ -295,14 +295,14 @@ def equation_of(
     """A term's equation in SI units, ``quantity = expression [unit]`` (a sine and cosine
     pair as one harmonic; a term the refit set under 1e-9 of the largest left out)."""
     coef, info, parts, k = list(coef), PLACES[place], [], 0
+    tiny = 1e-9 * max(map(abs, coef), default=0.0)
     for t in terms:
         cs = coef[k : k + len(t)]
         k += len(t)
-        if max(map(abs, cs)) < 1e-9 * max(map(abs, coef)):
+        if max(map(abs, cs)) < tiny:
             continue
         parts.append(render_pair(t, cs, signals) if len(t) == 2 else render(t[0], cs[0], signals))
-    expr = " ".join(parts).lstrip("+")
-    return f"{info.quantity} = {expr} [{info.unit}]"
+    return f"{info.quantity} = {' '.join(parts).lstrip('+')} [{info.unit}]"
 
 
 def _design(ses, fit, place, groups, fold, stage: str) -> Design | None:
